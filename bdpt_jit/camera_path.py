@@ -1,0 +1,138 @@
+"""Camera subpaths: the strategies that end on the camera side, each weighted by mis.py.
+- s=0: the camera subpath hits an emitter;
+- s=1: emitter sampling from a camera vertex (Mitsuba's ``sample_emitter_direction``);
+- s>=2, t>=2: connection of a camera vertex to each stored light vertex, with a shadow ray.
+No connection is made at a delta vertex (a BSDF without a smooth component)."""
+
+import drjit as dr
+import mitsuba as mi
+
+from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
+from .endpoints import safe_div
+
+
+class CameraTracer:
+    def __init__(self, ctx):
+        self.ctx = ctx
+
+    def primary(self, sampler, n, spp_pass, pixel_start):
+        """Camera rays for N samples: spp_pass consecutive samples per pixel of the crop,
+        starting at crop pixel ``pixel_start``."""
+        c = self.ctx
+        idx = dr.arange(mi.UInt32, n)
+        pixel = idx // spp_pass + pixel_start
+        crop_w = int(c.camera.crop_size.x)
+        pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
+        adjusted = pos / c.camera.crop_size
+        ray, ray_w = c.sensor.sample_ray(c.time, sampler.next_1d(), adjusted, sampler.next_2d())
+        return pos + c.camera.crop_offset, ray, mi.Color3f(ray_w)
+
+    @dr.syntax
+    def trace(self, sampler, n, spp_pass, pixel_start, film, store):
+        c = self.ctx
+        mis = c.mis
+        scene = c.scene
+        max_edges = c.max_depth_edges
+        film_pos, ray, beta = self.primary(sampler, n, spp_pass, pixel_start)
+        idx = dr.arange(mi.UInt32, n)
+
+        si = scene.ray_intersect(ray)
+        active = si.is_valid() & (max_edges >= 1)
+        alpha = dr.select(si.is_valid(), 1.0, 0.0)
+        pdf_cam_w = c.camera.pdf_w(ray.o, si.p)
+        d_vcm, d_vc = mis.camera_init(pdf_cam_w)
+        d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+        L = mi.Color3f(0.0)
+        depth = mi.UInt32(1)                          # edges from the camera to si
+        prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
+        n_light = store.count if store is not None else mi.UInt32(0)
+
+        while dr.hint(active, label='bdpt_camera_subpath'):
+            bsdf = si.bsdf(ray)
+            smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+
+            # ---------------- s = 0: the camera subpath hits an emitter ----------------
+            if dr.hint(c.use_s0, mode='scalar'):
+                emitter = si.emitter(scene)
+                hit_em = active & (emitter != None)    # noqa: E711 (pointer test)
+                if dr.hint(c.hide_emitters, mode='scalar'):
+                    hit_em &= depth > 1
+                le = emitter.eval(si, hit_em)
+                ds = mi.DirectionSample3f(scene, si, prev)
+                pdf_y0_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ds)
+                pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
+                                         c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
+                pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d)
+                w = mis.weight_s0(d_vcm, d_vc, pdf_direct_a, pdf_emit_w)
+                L[hit_em] += beta * le * w
+
+            active &= depth + 1 <= max_edges          # every strategy below adds an edge
+
+            # ---------------- s = 1: emitter sampling ----------------
+            if dr.hint(c.use_s1, mode='scalar'):
+                em_on = active & smooth
+                ds, em_w = scene.sample_emitter_direction(si, sampler.next_2d(), True, em_on)
+                em_on &= (ds.pdf > 0) & (dr.max(em_w) > 0)
+                f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, em_on)
+                pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d)
+                cos_e = dr.abs(dr.dot(ds.n, ds.d))
+                cos_z = dr.abs(dr.dot(si.n, ds.d))
+                w = mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, ds.pdf, pdf_emit_w, cos_e, cos_z, pdf_rev_w)
+                L[em_on] += beta * f * em_w * w
+
+            # ---------------- s >= 2: connect to the light subpath ----------------
+            if dr.hint(c.use_connect, mode='scalar'):
+                conn_on = active & smooth
+                j = mi.UInt32(0)
+                while dr.hint(conn_on & (j < n_light), label='bdpt_connect'):
+                    slot = j * c.n_opaque + idx
+                    y_depth = dr.gather(mi.UInt32, store.depth, slot, conn_on)
+                    ok = conn_on & (y_depth + depth + 1 <= max_edges)
+                    y = dr.gather(mi.SurfaceInteraction3f, store.si, slot, ok)
+                    to_y = y.p - si.p
+                    dist2 = dr.squared_norm(to_y)
+                    ok &= dist2 > 0
+                    d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
+                    f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
+                    f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, y.bsdf(), -d, ok)
+                    y_beta = dr.gather(mi.Color3f, store.beta, slot, ok)
+                    contrib = beta * f_c * f_l * y_beta * safe_div(1.0, dist2)
+                    ok &= ok_l & (dr.max(contrib) > 0)
+                    ok &= ~scene.ray_test(si.spawn_ray_to(y.p), ok)
+                    y_vcm = dr.gather(mi.Float, store.d_vcm, slot, ok)
+                    y_vc = dr.gather(mi.Float, store.d_vc, slot, ok)
+                    w = mis.weight_connect(
+                        y_vcm, y_vc, d_vcm, d_vc,
+                        pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
+                        pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
+                        pdf_l_rev_w, pdf_c_rev_w)
+                    L[ok] += contrib * w
+                    j += 1
+
+            # ---------------- continue the walk ----------------
+            bs, bsdf_w = bsdf.sample(CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+            active &= (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
+            beta *= bsdf_w
+            wo_world = si.to_world(bs.wo)
+            if dr.hint(c.has_delta, mode='scalar'):
+                is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            else:
+                is_delta = mi.Bool(False)
+            pdf_rev_w = dr.select(is_delta, 0.0,
+                                  reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
+                                         bs.pdf, pdf_rev_w, is_delta)
+
+            q = dr.minimum(dr.max(beta), 0.95)
+            rr = active & (depth >= c.rr_depth)
+            beta[rr] *= dr.rcp(q)
+            active &= ~rr | (sampler.next_1d() < q)
+
+            prev = mi.Interaction3f(si)
+            ray = si.spawn_ray(wo_world)
+            si = scene.ray_intersect(ray, active)
+            active &= si.is_valid()
+            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+            depth += 1
+
+        film.put_camera(film_pos, L, alpha, mi.Bool(True))

@@ -1,0 +1,51 @@
+"""Evaluating a vertex of a subpath towards another point: the BSDF value times the cosine,
+the forward density of that direction and the reverse density of the vertex's incoming
+direction. Camera vertices transport radiance; light vertices transport importance, with the
+adjoint BSDF's shading-normal correction (Veach's thesis, section 5.3, eq. 5.17)."""
+
+import drjit as dr
+import mitsuba as mi
+
+CTX_RADIANCE = mi.BSDFContext(mi.TransportMode.Radiance)
+CTX_IMPORTANCE = mi.BSDFContext(mi.TransportMode.Importance)
+
+
+def reverse_pdf_w(bsdf, ctx, si, wo_local, active):
+    """Density of sampling the vertex's incoming direction ``si.wi`` when arriving from
+    ``wo_local``: the same BSDF queried with the two directions swapped."""
+    si_rev = mi.SurfaceInteraction3f(si)
+    si_rev.wi = wo_local
+    return bsdf.pdf(ctx, si_rev, si.wi, active)
+
+
+def adjoint_correction(si, wo_local, wo_world, active):
+    """Shading-normal factor of the adjoint BSDF, |cos_s(wi) cos_g(wo)| / |cos_s(wo) cos_g(wi)|,
+    and the mask that refuses light leaks (shading and geometric normals disagreeing about the
+    side of a direction). ``si.wi`` is the local direction towards the previous vertex."""
+    wi_world = si.to_world(si.wi)
+    cos_g_wi = dr.dot(si.n, wi_world)
+    cos_g_wo = dr.dot(si.n, wo_world)
+    cos_s_wi = mi.Frame3f.cos_theta(si.wi)
+    cos_s_wo = mi.Frame3f.cos_theta(wo_local)
+    valid = active & (cos_g_wi * cos_s_wi > 0) & (cos_g_wo * cos_s_wo > 0)
+    denom = cos_s_wo * cos_g_wi
+    factor = dr.select(valid & (denom != 0), dr.abs(cos_s_wi * cos_g_wo / denom), 0.0)
+    return factor, valid
+
+
+def eval_camera_vertex(si, bsdf, wo_world, active):
+    """f(wi -> wo) |cos_s(wo)| in radiance mode; forward density of wo; reverse density of wi."""
+    wo_local = si.to_local(wo_world)
+    f, pdf_fwd_w = bsdf.eval_pdf(CTX_RADIANCE, si, wo_local, active)
+    pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, wo_local, active)
+    return f, pdf_fwd_w, pdf_rev_w
+
+
+def eval_light_vertex(si, bsdf, wo_world, active):
+    """Adjoint f*(wi -> wo) times the geometric-cosine measure, as the light subpath carries it:
+    Mitsuba's importance-mode value times the shading-normal correction; densities as above."""
+    wo_local = si.to_local(wo_world)
+    corr, valid = adjoint_correction(si, wo_local, wo_world, active)
+    f, pdf_fwd_w = bsdf.eval_pdf(CTX_IMPORTANCE, si, wo_local, valid)
+    pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, wo_local, valid)
+    return f * corr, pdf_fwd_w, pdf_rev_w, valid

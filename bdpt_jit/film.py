@@ -1,0 +1,61 @@
+"""The film: camera-subpath samples (s=0, s=1, connections) go into one image block with the
+film's reconstruction filter and are normalised by their filter weights, as Mitsuba's
+``path`` does; light-image splats (t=1) go into a second block with normalised filter weights
+and no weight channel, as Mitsuba's ``ptracer`` does. The two are developed apart and summed.
+
+One place holds the light image's scale (see ``splat_scale``)."""
+
+import drjit as dr
+import mitsuba as mi
+
+
+class FilmAccumulator:
+    def __init__(self, film: mi.Film):
+        self.film = film
+        film.prepare([])
+        self.base_channels = film.base_channels_count() if hasattr(film, 'base_channels_count') else None
+        self.cam = film.create_block()
+        self.lt = film.create_block(normalize=True)
+        self.lt.set_coalesce(False)
+        self.n_channels = self.cam.channel_count()          # rgb(+alpha) + weight
+        self.has_alpha = self.n_channels == 5
+        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
+
+    @staticmethod
+    def splat_scale(spp: int):
+        """Light paths are traced one per camera sample (spp per pixel of the crop), and the
+        sensor's importance is normalised over the crop: each splat carries 1/spp."""
+        return 1.0 / spp
+
+    def put_camera(self, pos, value: mi.Color3f, alpha, active):
+        vals = [value.x, value.y, value.z]
+        if self.has_alpha:
+            vals.append(alpha)
+        vals.append(dr.select(active, 1.0, 0.0))
+        self.cam.put(pos, vals, active)
+
+    def put_splat(self, uv_in_crop, value: mi.Color3f, active):
+        vals = [value.x, value.y, value.z]
+        if self.has_alpha:
+            vals.append(dr.zeros(mi.Float, dr.width(value.x)))
+        vals.append(dr.zeros(mi.Float, dr.width(value.x)))
+        self.lt.put(uv_in_crop + self.crop_offset, vals, active)
+
+    def develop(self) -> mi.TensorXf:
+        """Sum of the normalised camera image and the light image, handed to the film so that
+        ``film.bitmap()`` and ``mi.render`` both see it. Returns the developed tensor."""
+        cam = self.cam.tensor()
+        lt = self.lt.tensor()
+        c = self.n_channels
+        w = cam[:, :, c - 1:c]
+        inv_w = dr.select(w > 0, 1.0 / dr.select(w > 0, w, 1.0), 0.0)
+        rgb = cam[:, :, 0:3] * inv_w + lt[:, :, 0:3]
+        parts = [rgb]
+        if self.has_alpha:
+            parts.append(cam[:, :, 3:4] * inv_w)
+        parts.append(dr.ones(mi.TensorXf, shape=(rgb.shape[0], rgb.shape[1], 1)))
+        total = dr.concat(parts, axis=2)
+        block = mi.ImageBlock(total, offset=self.film.crop_offset(), rfilter=None)
+        self.film.clear()
+        self.film.put_block(block)
+        return self.film.develop()

@@ -1,0 +1,207 @@
+"""The ``bdpt`` integrator plugin: bidirectional path tracing with every (s,t) strategy."""
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import drjit as dr
+import mitsuba as mi
+
+from . import params as P
+from .camera_path import CameraTracer
+from .endpoints import Camera, EmitterTable
+from .film import FilmAccumulator
+from .light_path import LightStore, LightTracer
+from .mis import MIS
+from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
+
+UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
+BYTES_PER_LIGHT_VERTEX = 220    # SurfaceInteraction3f + beta + MIS quantities + depth
+BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
+MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
+
+
+@dataclass
+class Context:
+    """What the kernels are specialised to: the scene, the settings, and which strategies
+    are possible. Plain Python values here become trace-time constants."""
+    scene: object
+    sensor: object
+    camera: Camera
+    emitters: EmitterTable
+    mis: MIS
+    time: float
+    max_depth_edges: int
+    unbounded: bool
+    rr_depth: int
+    hide_emitters: bool
+    has_delta: bool
+    use_s0: bool
+    use_s1: bool
+    use_connect: bool
+    splat_y0: bool
+    splat_t1: bool
+    splat_scale: float = 1.0
+    n_opaque: object = None
+    stats: Optional[object] = None
+
+    @property
+    def needs_light_pass(self):
+        return self.splat_y0 or self.splat_t1 or self.use_connect
+
+    @property
+    def needs_camera_pass(self):
+        return self.use_s0 or self.use_s1 or self.use_connect
+
+    def strategies(self):
+        out = []
+        if self.use_s0:
+            out.append('s=0 (camera subpath hits an emitter)')
+        if self.use_s1:
+            out.append('s=1 (emitter sampling)')
+        if self.splat_y0:
+            out.append('s=1,t=1 (emitter seen by the camera through light tracing)')
+        if self.splat_t1:
+            out.append('t=1 (light subpath vertices splatted to the camera)')
+        if self.use_connect:
+            out.append('s>=2,t>=2 (subpath connections)')
+        return out
+
+
+class BDPTIntegrator(mi.SamplingIntegrator):
+    __doc__ = None  # set below from the parameter table
+
+    def __init__(self, props=None):
+        check_variant()
+        super().__init__(mi.Properties() if props is None else props)
+        self.settings = P.parse_properties(props if props is not None else {})
+        s = self.settings
+        self.max_depth = s['max_depth']
+        self.rr_depth = s['rr_depth']
+        self.technique = s['technique']
+        self.mis_kind = s['mis']
+        self.hide_emitters = s['hide_emitters']
+        self.samples_per_pass = s['samples_per_pass']
+        self.last_render_info = {}
+
+    # ------------------------------------------------------------------ setup
+    def make_context(self, scene, sensor) -> Context:
+        check_scene(scene, sensor)
+        unbounded = self.max_depth < 0
+        edges = UNBOUNDED if unbounded else self.max_depth
+        tech = self.technique
+        has_emitters = len(scene.emitters()) > 0
+        film = sensor.film()
+        return Context(
+            scene=scene, sensor=sensor, camera=Camera(sensor), emitters=EmitterTable(scene),
+            mis=MIS(self.mis_kind, tech), time=sensor.shutter_open(),
+            max_depth_edges=edges, unbounded=unbounded, rr_depth=self.rr_depth,
+            hide_emitters=self.hide_emitters, has_delta=scene_has_delta_bsdf(scene),
+            use_s0=has_emitters and tech in ('bdpt', 'pt') and edges >= 1,
+            use_s1=has_emitters and tech in ('bdpt', 'pt') and edges >= 2,
+            use_connect=has_emitters and tech == 'bdpt' and edges >= 3,
+            splat_y0=has_emitters and tech in ('bdpt', 'lt') and edges >= 1 and not self.hide_emitters,
+            splat_t1=has_emitters and tech in ('bdpt', 'lt') and edges >= 2,
+        )
+
+    def light_capacity(self, ctx: Context) -> int:
+        if not ctx.use_connect:
+            return 0
+        if ctx.unbounded:
+            return 8
+        return ctx.max_depth_edges - 2
+
+    def plan_passes(self, ctx, spp, n_pixels):
+        """Split spp x pixels samples into passes of whole pixels; returns
+        [(spp_in_pass, pixel_start, pixel_count)]."""
+        per_sample = BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
+        budget = self.samples_per_pass or max(MEMORY_BUDGET // per_sample, 1)
+        if budget >= n_pixels:
+            spp_pass = max(1, min(spp, budget // n_pixels))
+            passes, done = [], 0
+            while done < spp:
+                k = min(spp_pass, spp - done)
+                passes.append((k, 0, n_pixels))
+                done += k
+            return passes
+        passes = []
+        for _ in range(spp):
+            for start in range(0, n_pixels, budget):
+                passes.append((1, start, min(budget, n_pixels - start)))
+        return passes
+
+    # ------------------------------------------------------------------ render
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        ctx = self.make_context(scene, sensor)
+        film = sensor.film()
+        acc = FilmAccumulator(film)
+        if spp == 0:
+            spp = sensor.sampler().sample_count()
+        crop = film.crop_size()
+        n_pixels = int(crop[0]) * int(crop[1])
+        ctx.splat_scale = acc.splat_scale(spp)
+        passes = self.plan_passes(ctx, spp, n_pixels)
+        t0 = _time.perf_counter()
+        for i, (spp_pass, pixel_start, pixel_count) in enumerate(passes):
+            n = spp_pass * pixel_count
+            ctx.n_opaque = dr.opaque(mi.UInt32, n)
+            sampler = sensor.sampler().clone()
+            sampler.set_sample_count(spp_pass)
+            sampler.seed(mi.sample_tea_32(seed, i)[0] if False else (seed * 1000003 + i) & 0xFFFFFFFF, n)
+            store = None
+            if ctx.needs_light_pass:
+                cap = self.light_capacity(ctx)
+                if cap > 0:
+                    store = LightStore(n=n, capacity=cap)
+                    store.allocate()
+                LightTracer(ctx).trace(sampler, n, acc, store)
+            if ctx.needs_camera_pass:
+                CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
+            dr.eval(acc.cam.tensor(), acc.lt.tensor())
+        image = acc.develop()
+        dr.eval(image)
+        self.last_render_info = {
+            'strategies': ctx.strategies(),
+            'passes': len(passes),
+            'spp': spp,
+            'delta_handling': ctx.has_delta,
+            'time_s': _time.perf_counter() - t0,
+        }
+        return image
+
+    def sample(self, *args, **kwargs):
+        raise NotImplementedError('bdpt renders whole images: call mi.render(scene) with it')
+
+    def to_string(self):
+        return (f"BDPTIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"mis={self.mis_kind}, technique={self.technique}, hide_emitters={self.hide_emitters}]")
+
+
+BDPTIntegrator.__doc__ = f"""
+Bidirectional path tracer (``bdpt``)
+------------------------------------
+
+Veach's bidirectional path tracing with every (s,t) connection strategy, combined by multiple
+importance sampling whose weights are computed with Georgiev's recursion (seed paper eqs.
+20-22). Path tracing (``technique=pt``) and light tracing (``technique=lt``) are subsets of
+the same estimator.
+
+{P.markdown_table()}
+
+Example (XML)::
+
+    <integrator type="bdpt">
+        <integer name="max_depth" value="8"/>
+        <string name="mis" value="power"/>
+    </integrator>
+
+Example (Python)::
+
+    import mitsuba as mi
+    mi.set_variant('llvm_ad_rgb')
+    import bdpt_jit
+    scene = mi.load_file('scenes/cornell-box.xml')
+    image = mi.render(scene, integrator=mi.load_dict({{'type': 'bdpt', 'max_depth': 8}}))
+"""

@@ -1,0 +1,192 @@
+"""Light subpaths: emission from an area emitter, importance transport through the scene,
+the light image (t=1: every light vertex connected to the camera and splatted), and the
+storage of the vertices that camera subpaths connect to (s>=2).
+
+Storage is a set of global arrays, level-major (index = level * N + path), so the same code
+runs with symbolic loops (one kernel) and with evaluated loops (as Dr.Jit's AD needs). When
+``max_depth`` bounds the subpath, the storage is sized exactly; without a bound the loop pauses
+the lanes whose storage is full, the storage grows, and the loop resumes: no vertex is ever
+dropped, so every strategy the MIS weights count is really available."""
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .connect import CTX_IMPORTANCE, adjoint_correction, eval_light_vertex, reverse_pdf_w
+from .endpoints import direction_sample_at, safe_div
+
+
+@dataclass
+class LightStore:
+    """Vertices y_1, y_2, ... of N light subpaths at non-delta surfaces."""
+    n: int                       # light subpaths (one per camera sample)
+    capacity: int                # levels allocated
+    si: object = None            # mi.SurfaceInteraction3f, wi: local, towards y_{j-1}
+    beta: object = None          # mi.Color3f: Le / p up to y_j, importance transport
+    d_vcm: object = None         # mi.Float: MIS quantity (mis.py)
+    d_vc: object = None          # mi.Float: MIS quantity (mis.py)
+    depth: object = None         # mi.UInt32: j, edges from y0 to this vertex
+    count: object = None         # mi.UInt32 per path: vertices stored
+
+    def allocate(self):
+        size = max(self.n * self.capacity, 1)
+        self.si = dr.zeros(mi.SurfaceInteraction3f, size)
+        self.beta = dr.zeros(mi.Color3f, size)
+        self.d_vcm = dr.zeros(mi.Float, size)
+        self.d_vc = dr.zeros(mi.Float, size)
+        self.depth = dr.zeros(mi.UInt32, size)
+        self.count = dr.zeros(mi.UInt32, self.n)
+
+    def grow(self):
+        """Double the levels, keeping what is stored (level-major: a plain prefix copy)."""
+        old = (self.si, self.beta, self.d_vcm, self.d_vc, self.depth)
+        old_size = self.n * self.capacity
+        self.capacity *= 2
+        count = self.count
+        self.allocate()
+        self.count = count
+        idx = dr.arange(mi.UInt32, old_size)
+        for new, prev in zip((self.si, self.beta, self.d_vcm, self.d_vc, self.depth), old):
+            dr.scatter(new, prev, idx)
+        dr.eval(self.si, self.beta, self.d_vcm, self.d_vc, self.depth)
+
+    def targets(self):
+        return [self.si, self.beta, self.d_vcm, self.d_vc, self.depth]
+
+
+class LightTracer:
+    """Traces light subpaths; owned by the integrator, which passes in the shared context."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+
+    # ------------------------------------------------------------------ emission
+    def start(self, sampler, n, film):
+        c = self.ctx
+        active = dr.full(mi.Bool, True, n)
+        time = c.time
+        (ps, si_e, emitter, d, le, cos_s, p_sel, pdf_light_a,
+         pdf_emit_w) = c.emitters.sample_emission(time, sampler.next_1d(), sampler.next_2d(),
+                                                   sampler.next_2d(), active)
+        active &= (pdf_emit_w > 0) & (dr.max(le) > 0)
+
+        # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
+        if c.splat_y0:
+            self.splat_emitter_vertex(sampler, si_e, ps, emitter, film, active)
+        else:
+            sampler.next_2d()                                 # keep sample dimensions aligned
+
+        beta = mi.Color3f(le * safe_div(dr.abs(cos_s), pdf_emit_w))
+        d_vc = c.mis.light_init(pdf_emit_w, dr.abs(cos_s))
+        ray = si_e.spawn_ray(d)
+        si = c.scene.ray_intersect(ray, active)
+        active &= si.is_valid() & (c.max_depth_edges >= 2)
+        ds0 = direction_sample_at(si_e, ps, si.p, emitter)
+        pdf_direct_a = c.emitters.pdf_direct_a(si, ds0, active)
+        cos_hit = dr.abs(dr.dot(si.n, ray.d))
+        d_vcm, d_vc = c.mis.light_first_hit(d_vc, pdf_emit_w, pdf_direct_a, dr.square(si.t), cos_hit)
+        depth = dr.full(mi.UInt32, 1, n)
+        return active, si, beta, d_vcm, d_vc, depth
+
+    def splat_emitter_vertex(self, sampler, si_e, ps, emitter, film, active):
+        c = self.ctx
+        ds, sensor_w = c.sensor.sample_direction(si_e, sampler.next_2d(), active)
+        ok = active & (ds.pdf > 0)
+        cos_g = dr.dot(ps.n, ds.d)                            # emitter normal towards camera
+        si_to_cam = mi.SurfaceInteraction3f(si_e)
+        si_to_cam.wi = si_e.to_local(ds.d)
+        le = emitter.eval(si_to_cam, ok)
+        ok &= (cos_g > 0) & (dr.max(le) > 0)
+        ok &= ~c.scene.ray_test(si_e.spawn_ray_to(ds.p), ok)
+        pdf_light_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ps)
+        pdf_cam_a = sensor_w.x * dr.abs(cos_g)                # We |cos| / d^2
+        w = c.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
+        value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * w * c.splat_scale
+        film.put_splat(ds.uv, value, ok)
+        if c.stats is not None:
+            c.stats.count('s1t1', ok)
+
+    # ------------------------------------------------------------------ walk
+    def trace(self, sampler, n, film, store):
+        """Trace N light subpaths; splat t=1 strategies; fill ``store`` (or None)."""
+        c = self.ctx
+        active, si, beta, d_vcm, d_vc, depth = self.start(sampler, n, film)
+        idx = dr.arange(mi.UInt32, n)
+        count = dr.zeros(mi.UInt32, n)
+        while True:
+            active, si, beta, d_vcm, d_vc, depth, count = self.walk(
+                sampler, idx, film, store, active, si, beta, d_vcm, d_vc, depth, count)
+            if store is None:
+                break
+            store.count = count
+            if not c.unbounded or not dr.any(active):
+                break
+            store.grow()             # lanes paused on a full storage resume with more levels
+
+    @dr.syntax
+    def walk(self, sampler, idx, film, store, active, si, beta, d_vcm, d_vc, depth, count):
+        c = self.ctx
+        mis = c.mis
+        store_on = store is not None
+        capacity = store.capacity if store_on else 0
+        max_edges = c.max_depth_edges
+        st_si, st_beta, st_vcm, st_vc, st_depth = (store.targets() if store_on else (None,) * 5)
+        pausing = store_on and c.unbounded     # bounded storage is sized to never fill
+        cap_eff = capacity if pausing else 0xFFFFFFFF
+        while dr.hint(active & (count < cap_eff),
+                      label='bdpt_light_subpath',
+                      exclude=[st_si, st_beta, st_vcm, st_vc, st_depth]):
+            bsdf = si.bsdf()
+            smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+
+            # ---------------- store y_depth for connections (s >= 2, t >= 2) ----------------
+            if dr.hint(store_on, mode='scalar'):
+                do_store = active & smooth & (depth + 2 <= max_edges)
+                slot = count * c.n_opaque + idx
+                dr.scatter(st_si, si, slot, do_store)
+                dr.scatter(st_beta, beta, slot, do_store)
+                dr.scatter(st_vcm, d_vcm, slot, do_store)
+                dr.scatter(st_vc, d_vc, slot, do_store)
+                dr.scatter(st_depth, depth, slot, do_store)
+                count[do_store] += 1
+
+            # ---------------- t = 1: connect y_depth to the camera ----------------
+            if dr.hint(c.splat_t1, mode='scalar'):
+                do_splat = active & smooth & (depth + 1 <= max_edges)
+                ds, sensor_w = c.sensor.sample_direction(si, sampler.next_2d(), do_splat)
+                do_splat &= ds.pdf > 0
+                f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat)
+                do_splat &= ok & (dr.max(f) > 0)
+                do_splat &= ~c.scene.ray_test(si.spawn_ray_to(ds.p), do_splat)
+                pdf_cam_a = sensor_w.x * dr.abs(dr.dot(si.n, ds.d))
+                w = mis.weight_t1(d_vcm, d_vc, pdf_cam_a, pdf_rev_w)
+                film.put_splat(ds.uv, beta * f * sensor_w * (w * c.splat_scale), do_splat)
+                if dr.hint(c.stats is not None, mode='scalar'):
+                    c.stats.count('t1', do_splat)
+
+            # ---------------- continue the walk ----------------
+            active &= depth + 2 <= max_edges
+            bs, bsdf_w = bsdf.sample(CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+            wo_world = si.to_world(bs.wo)
+            corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
+            active &= ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
+            beta *= bsdf_w * corr
+            is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) if c.has_delta else mi.Bool(False)
+            pdf_rev_w = dr.select(is_delta, 0.0,
+                                  reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta))
+            cos_out = dr.abs(dr.dot(si.n, wo_world))
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
+
+            # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
+            q = dr.minimum(dr.max(beta), 0.95)
+            rr = active & (depth >= c.rr_depth)
+            beta[rr] *= dr.rcp(q)
+            active &= ~rr | (sampler.next_1d() < q)
+
+            ray = si.spawn_ray(wo_world)
+            si = c.scene.ray_intersect(ray, active)
+            active &= si.is_valid()
+            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+            depth += 1
+        return active, si, beta, d_vcm, d_vc, depth, count

@@ -1,0 +1,161 @@
+"""Multiple importance sampling weights of every (s,t) strategy, computed recursively.
+
+This module is the only place where MIS weights are formed. It follows the seed paper's
+eqs. (17)-(22) (Vlnas, after Veach and Georgiev): the weight of strategy (s,t) is
+
+    w_{s,t} = 1 / (w_light + 1 + w_camera)                                          (eq. 20)
+
+where w_light sums h(p_i / p_s) over the strategies with fewer light vertices (i < s) and
+w_camera over those with more (i > s); h(x) = x^beta is the heuristic (eq. 17/18). Both sums
+are built up vertex by vertex while each subpath is traced (eq. 21), in the split form of
+eq. (22), which Georgiev's report ("Implementing Vertex Connection and Merging", 2012) writes
+with the two running quantities that this code calls ``d_vcm`` and ``d_vc``:
+
+    paper eq. 22          this code
+    vc_i  = 1 / p->_i     d_vcm   (holds 1 / the forward density of the last vertex)
+    vcm_i = recursion     d_vc    (holds the sum over all strategies further back)
+
+Every quantity is already passed through the heuristic h, so the same recursion gives the
+power (beta=2), balance (beta=1) and uniform (beta=0, with h(0)=0) weightings: h is
+multiplicative, h(ab) = h(a) h(b), for all three.
+
+Densities carry their measure in their names: ``pdf_w`` per unit solid angle, ``pdf_a`` per
+unit area. Tags ``[eq. N]`` refer to the seed paper's equations.
+
+Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
+- camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
+  weighted with the camera's solid-angle density We(omega) normalised over the crop window;
+- s=1 with t>=2 is emitter sampling from the camera vertex (Mitsuba's
+  ``sample_emitter_direction``); its density ``pdf_direct_a`` may depend on that vertex (cone
+  sampling of spheres), which is why the light subpath evaluates it at its first hit;
+- s=1, t=1 splats the light subpath's first vertex y0 (its density: emission position).
+- Russian roulette is left out of all densities (a valid choice: the weights still sum to 1).
+"""
+
+import drjit as dr
+
+
+class MIS:
+    """Heuristic and strategy set. ``kind``: power | balance | uniform; ``technique``:
+    bdpt | pt | lt. All methods are plain arithmetic on Dr.Jit arrays (or Python floats), so
+    they trace into any kernel, symbolic or evaluated, and differentiate."""
+
+    def __init__(self, kind: str = 'power', technique: str = 'bdpt'):
+        if kind not in ('power', 'balance', 'uniform'):
+            raise ValueError(f"mis must be power, balance or uniform, got {kind!r}")
+        if technique not in ('bdpt', 'pt', 'lt'):
+            raise ValueError(f"technique must be bdpt, pt or lt, got {technique!r}")
+        self.kind = kind
+        self.technique = technique
+
+    # ------------------------------------------------------------------ heuristic
+    def h(self, x):
+        """h(x) = x^beta, the ratio p_i / p_s under the heuristic [eq. 17, 18]."""
+        if self.kind == 'power':
+            return x * x                                   # [eq. 18] beta = 2
+        if self.kind == 'balance':
+            return x                                       # [eq. 17] beta = 1
+        return dr.select(x > 0, 1.0, 0.0)                  # [eq. 17] beta = 0: uniform, h(0)=0
+
+    # ------------------------------------------------------------------ recursion
+    # Camera subpath start. The camera samples z1 with the density We per unit solid angle.
+    def camera_init(self, pdf_cam_w):
+        """(d_vcm, d_vc) at the camera vertex z0, before the first hit."""
+        if self.technique == 'pt':
+            # No light tracing: nothing competes with s=0 at the first hit.
+            return 0.0 * pdf_cam_w, 0.0 * pdf_cam_w
+        d_vcm = self.h(1.0 / pdf_cam_w)                     # [eq. 22] vc_0 = 1 / p->_0
+        d_vc = 0.0 * pdf_cam_w                              # [eq. 22] no strategy behind z0
+        return d_vcm, d_vc
+
+    def light_init(self, pdf_emit_w, cos_e):
+        """d_vc at the light vertex y0 (emission density per unit solid angle, position and
+        emitter choice included; cos_e: cosine of the emitted direction). d_vcm needs the
+        emitter-sampling density seen from y1 and is set by ``light_first_hit``."""
+        return self.h(cos_e / pdf_emit_w)                   # [eq. 22] vcm_1: strategy s=0 behind y0
+
+    def light_first_hit(self, d_vc, pdf_emit_w, pdf_direct_a, dist2, cos_hit):
+        """(d_vcm, d_vc) at the light subpath's first hit y1. ``pdf_direct_a``: density per unit
+        area of emitter sampling choosing y0 from y1."""
+        d_vcm = self.h(pdf_direct_a / pdf_emit_w)           # [eq. 22] vc_1 with p<- of s=1
+        return self.on_hit(d_vcm, d_vc, dist2, cos_hit)
+
+    def on_hit(self, d_vcm, d_vc, dist2, cos_hit):
+        """Account for the solid-angle -> area conversion of the edge just traced."""
+        d_vcm = d_vcm * self.h(dist2) / self.h(cos_hit)     # [eq. 9, 22] g<-: p->_i in area measure
+        d_vc = d_vc / self.h(cos_hit)                       # [eq. 9, 22]
+        return d_vcm, d_vc
+
+    def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta):
+        """Update at a vertex after sampling the next direction. ``pdf_fwd_w``: density of the
+        sampled direction; ``pdf_rev_w``: density of sampling the incoming direction given the
+        outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal)."""
+        inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
+        d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm)  # [eq. 21, 22] vcm_i
+        d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
+        # A delta vertex cannot be connected: the strategies that would end a subpath there
+        # have density 0, and the forward and reverse discrete lobe probabilities cancel.
+        d_vc_delta = d_vc * self.h(cos_out)                                             # [eq. 21] p<-/p-> = 1
+        d_vcm_delta = 0.0 * d_vcm                                                       # [eq. 22] no connection here
+        return (dr.select(is_delta, d_vcm_delta, d_vcm_smooth),
+                dr.select(is_delta, d_vc_delta, d_vc_smooth))
+
+    # ------------------------------------------------------------------ weights
+    def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w):
+        """Camera subpath hits an emitter (s=0). ``pdf_direct_a``: emitter sampling density of the
+        hit point (per unit area; for the first hit the light subpath's position density);
+        ``pdf_emit_w``: light subpath's density of emitting towards the previous vertex."""
+        if self.technique == 'lt':
+            return 0.0 * d_vcm
+        w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1
+        if self.technique == 'bdpt':
+            w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
+        return 1.0 / (1.0 + w_camera)                       # [eq. 20] w_light = 0
+
+    def weight_s1(self, d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z,
+                  pdf_rev_w, emitter_is_delta=False):
+        """Emitter sampling (s=1, t>=2) at camera vertex z. ``pdf_bsdf_w``: z's BSDF density
+        towards the emitter point; ``pdf_direct_w``: emitter sampling density (solid angle at
+        z); ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``,
+        ``cos_z``: |cos| at the emitter point and at z; ``pdf_rev_w``: z's BSDF density of
+        its incoming direction given the emitter direction."""
+        if self.technique == 'lt':
+            return 0.0 * d_vcm
+        w_light = 0.0 if emitter_is_delta else self.h(pdf_bsdf_w / pdf_direct_w)    # [eq. 20] strategy s=0
+        if self.technique == 'pt':
+            return 1.0 / (w_light + 1.0)                    # [eq. 20] w_camera = 0
+        w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22]
+                    * (d_vcm + d_vc * self.h(pdf_rev_w)))
+        return 1.0 / (w_light + 1.0 + w_camera)             # [eq. 20]
+
+    def weight_connect(self, l_vcm, l_vc, c_vcm, c_vc, pdf_cam_to_light_a, pdf_light_to_cam_a,
+                       pdf_light_rev_w, pdf_cam_rev_w):
+        """Connection of light vertex y_{s-1} and camera vertex z_{t-1} (s,t>=2).
+        ``pdf_cam_to_light_a``: z's BSDF density of y (per unit area at y);
+        ``pdf_light_to_cam_a``: y's BSDF density of z (per unit area at z);
+        ``pdf_light_rev_w``: y's density of its incoming direction given the direction to z;
+        ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y."""
+        if self.technique != 'bdpt':
+            return 0.0 * l_vcm
+        w_light = self.h(pdf_cam_to_light_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))    # [eq. 21, 22]
+        w_camera = self.h(pdf_light_to_cam_a) * (c_vcm + c_vc * self.h(pdf_cam_rev_w))     # [eq. 21, 22]
+        return 1.0 / (w_light + 1.0 + w_camera)                                             # [eq. 20]
+
+    def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
+        """Light vertex y_{s-1} (s>=2) connected to the camera (t=1). ``pdf_cam_a``: density of
+        the camera sampling y (We converted to area at y)."""
+        if self.technique == 'pt':
+            return 0.0 * l_vcm
+        if self.technique == 'lt':
+            return 1.0 + 0.0 * l_vcm
+        w_light = self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
+        return 1.0 / (w_light + 1.0)                                             # [eq. 20] w_camera = 0
+
+    def weight_s1t1(self, pdf_cam_a, pdf_light_a):
+        """The emitter vertex y0 splatted to the camera (s=1, t=1); the other strategy for a
+        one-edge path is s=0 (the camera ray hits the emitter)."""
+        if self.technique == 'pt':
+            return 0.0 * pdf_cam_a
+        if self.technique == 'lt':
+            return 1.0 + 0.0 * pdf_cam_a
+        return 1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a))  # [eq. 20]

@@ -1,0 +1,125 @@
+"""The integrator's parameters: one table that the plugin, its docstring, the command line
+and the docs all read, so names, types, defaults and allowed values cannot drift apart."""
+
+from dataclasses import dataclass
+from typing import Any, Optional, Tuple
+
+
+class ParameterError(ValueError):
+    """A parameter of the ``bdpt`` integrator has a value it cannot take."""
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    type: type
+    default: Any
+    meaning: str
+    choices: Optional[Tuple[str, ...]] = None
+    minimum: Optional[int] = None
+
+    @property
+    def type_name(self) -> str:
+        return {int: 'int', bool: 'bool', str: 'string'}[self.type]
+
+    @property
+    def default_text(self) -> str:
+        if self.default is None:
+            return 'automatic'
+        if self.type is bool:
+            return 'true' if self.default else 'false'
+        return str(self.default)
+
+
+PARAMS = (
+    Param('max_depth', int, -1,
+          'Longest path in edges, as in Mitsuba\'s `path` (-1: no limit; 1: only emitters seen '
+          'directly; 2: direct lighting). `bdpt` has the same expected image as `path` for every value.',
+          minimum=-1),
+    Param('rr_depth', int, 5,
+          'Number of edges from which Russian roulette may end a camera or light subpath.',
+          minimum=1),
+    Param('mis', str, 'power',
+          'Weighting of the strategies: `power` (power heuristic, beta=2, paper eq. 18), `balance` '
+          '(beta=1), or `uniform` (each path weighted by 1 / the number of strategies that can '
+          'sample it).',
+          choices=('power', 'balance', 'uniform')),
+    Param('technique', str, 'bdpt',
+          'Strategies used: `bdpt` (all (s,t)), `pt` (camera subpaths only: s=0 and s=1), `lt` '
+          '(light subpaths only: every t=1 strategy, directly visible emitters included).',
+          choices=('bdpt', 'pt', 'lt')),
+    Param('hide_emitters', bool, False,
+          'Hide directly visible emitters, as in Mitsuba\'s `path`.'),
+    Param('samples_per_pass', int, None,
+          'Samples traced per kernel launch; bounds memory (light-vertex storage grows with it). '
+          'Automatic: as many as fit the memory budget, rounded to whole samples per pixel.',
+          minimum=1),
+)
+
+PARAMS_BY_NAME = {p.name: p for p in PARAMS}
+
+
+def check_value(p: Param, value):
+    """Validate one value against its row of the table; return it converted."""
+    if p.type is bool:
+        if isinstance(value, str) and value.lower() in ('true', 'false'):
+            value = value.lower() == 'true'
+        if not isinstance(value, bool):
+            raise ParameterError(f"bdpt: parameter '{p.name}' must be a boolean, got {value!r}")
+    elif p.type is int:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}")
+        try:
+            iv = int(value)
+        except ValueError:
+            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}") from None
+        if isinstance(value, float) and iv != value:
+            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}")
+        value = iv
+        if p.minimum is not None and value < p.minimum:
+            raise ParameterError(
+                f"bdpt: parameter '{p.name}' must be >= {p.minimum}, got {value}")
+    elif p.type is str:
+        if not isinstance(value, str):
+            raise ParameterError(f"bdpt: parameter '{p.name}' must be a string, got {value!r}")
+        if p.choices and value not in p.choices:
+            raise ParameterError(
+                f"bdpt: parameter '{p.name}' must be one of {', '.join(p.choices)}; got {value!r}")
+    return value
+
+
+def parse_properties(props) -> dict:
+    """Read the table's parameters from a Mitsuba ``Properties`` (or a plain dict) and refuse
+    unknown names and bad values with an error that names the parameter."""
+    if isinstance(props, dict):
+        items = dict(props)
+    else:
+        items = {k: props[k] for k in props.keys()}
+    out = {}
+    for name, value in items.items():
+        if name in ('type', 'id'):
+            continue
+        if name not in PARAMS_BY_NAME:
+            raise ParameterError(
+                f"bdpt: unknown parameter '{name}'; the parameters are "
+                f"{', '.join(p.name for p in PARAMS)}")
+        out[name] = check_value(PARAMS_BY_NAME[name], value)
+    for p in PARAMS:
+        out.setdefault(p.name, p.default)
+    return out
+
+
+def markdown_table() -> str:
+    rows = ['| name | type | default | meaning |', '|---|---|---|---|']
+    for p in PARAMS:
+        rows.append(f'| `{p.name}` | {p.type_name} | {p.default_text} | {p.meaning} |')
+    return '\n'.join(rows)
+
+
+def rst_table() -> str:
+    lines = []
+    for p in PARAMS:
+        lines.append(f' * - {p.name}')
+        lines.append(f'   - |{p.type_name}|')
+        lines.append(f'   - {p.meaning} (Default: {p.default_text})')
+    return '\n'.join(['.. pluginparameters::', ''] + lines)

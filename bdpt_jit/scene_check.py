@@ -1,0 +1,61 @@
+"""What this version of ``bdpt`` renders, checked before any kernel is traced: a scene outside
+that scope is refused with an error naming the plugin, never rendered wrongly."""
+
+import mitsuba as mi
+
+SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
+SUPPORTED_EMITTERS = ('AreaLight',)
+SUPPORTED_SENSORS = ('PerspectiveCamera',)
+
+
+class UnsupportedSceneError(ValueError):
+    """The scene uses a plugin or feature that ``bdpt`` does not render (yet)."""
+
+
+def check_variant():
+    v = mi.variant()
+    if v not in SUPPORTED_VARIANTS:
+        raise UnsupportedSceneError(
+            f"bdpt: Mitsuba variant '{v}' is not supported; use one of "
+            f"{', '.join(SUPPORTED_VARIANTS)} (mi.set_variant(...) before loading the scene)")
+
+
+def _plugin_name(obj) -> str:
+    name = obj.class_name() if hasattr(obj, 'class_name') else type(obj).__name__
+    return str(name)
+
+
+def check_scene(scene: mi.Scene, sensor: mi.Sensor):
+    check_variant()
+    s_name = _plugin_name(sensor)
+    if s_name not in SUPPORTED_SENSORS:
+        raise UnsupportedSceneError(
+            f"bdpt: sensor plugin '{s_name}' is not supported yet (supported: perspective)")
+    if sensor.get_medium() is not None:
+        raise UnsupportedSceneError("bdpt: participating media are not supported (the sensor has a medium)")
+    for em in scene.emitters():
+        e_name = _plugin_name(em)
+        if e_name not in SUPPORTED_EMITTERS:
+            raise UnsupportedSceneError(
+                f"bdpt: emitter plugin '{e_name}' is not supported yet (supported: area)")
+        keys = set(mi.traverse(em).keys())
+        if any(k.startswith('radiance.') and k != 'radiance.value' for k in keys):
+            raise UnsupportedSceneError(
+                "bdpt: area emitters with a textured (spatially varying) radiance are not supported yet")
+        if em.get_medium() is not None:
+            raise UnsupportedSceneError("bdpt: participating media are not supported (an emitter has a medium)")
+    for shape in scene.shapes():
+        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+            raise UnsupportedSceneError(
+                f"bdpt: participating media are not supported (shape '{shape.id()}' has a medium)")
+    if scene.environment() is not None:
+        raise UnsupportedSceneError("bdpt: environment emitters are not supported yet")
+
+
+def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
+    """True if any BSDF of the scene has a delta lobe (then the delta handling is traced)."""
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta):
+            return True
+    return False
