@@ -1,0 +1,162 @@
+"""Partition of unity of the recursive MIS weights (mis.py) on random paths.
+
+Each random path x_0 (on an emitter) ... x_k (the pinhole) gets random geometry (squared
+distances, cosines) and random densities at every vertex: diffuse-like (pdf ~ 1/pi),
+glossy (pdf up to 1e4) and delta vertices. An independent brute-force computation forms the
+full-path density p_s of every strategy as the product of its per-vertex area densities
+(Veach's thesis, eq. 10.9) and the weight h(p_s) / sum_j h(p_j) over the strategies the
+technique allows and the delta vertices do not forbid. The recursive weights, obtained by
+walking each subpath through mis.py exactly as the kernels do, must equal it (relative 1e-5),
+sum to 1 over the strategies, and be finite and in [0, 1]."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from bdpt_jit.mis import MIS
+
+M = 512   # random paths per length
+
+
+def random_paths(rng, k, delta_prob):
+    # vertex attributes, index 0..k
+    d2 = 10.0 ** rng.uniform(-3, 2, size=(M, k))         # edge i: (x_i, x_{i+1})
+    cosA = rng.uniform(0.01, 1.0, size=(M, k))            # at x_i towards x_{i+1}
+    cosB = rng.uniform(0.01, 1.0, size=(M, k))            # at x_{i+1} towards x_i
+    kind = rng.uniform(size=(M, k + 1))
+    glossy = 10.0 ** rng.uniform(-1, 4, size=(M, k + 1))
+    diffuse = rng.uniform(0.05, 1.0, size=(M, k + 1)) / np.pi
+    pL = np.where(kind < 0.5, diffuse, glossy)             # density towards x_{i+1}
+    pE = np.where(kind < 0.5, diffuse * rng.uniform(0.3, 3, size=(M, k + 1)),
+                  glossy * rng.uniform(0.1, 10, size=(M, k + 1)))  # towards x_{i-1}
+    delta = rng.uniform(size=(M, k + 1)) < delta_prob
+    delta[:, 0] = False
+    delta[:, k] = False
+    pL = np.where(delta, 1.0, pL)                          # discrete lobe: same both ways
+    pE = np.where(delta, 1.0, pE)
+    return dict(
+        k=k, d2=d2, cosA=cosA, cosB=cosB, pL=pL, pE=pE, delta=delta,
+        pA_light0=10.0 ** rng.uniform(-2, 2, size=M),      # choice x position density of x_0
+        p_direct_a=10.0 ** rng.uniform(-2, 2, size=M),     # emitter sampling of x_0 from x_1
+        pdir_e=rng.uniform(0.01, 1.0, size=M) / np.pi,     # emitted direction
+        p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
+    )
+
+
+def allowed(technique, k, s, P):
+    """Strategies the technique uses, and delta vertices forbid (connection endpoints)."""
+    t = k + 1 - s
+    if t < 1:
+        return np.zeros(M, bool)
+    if technique == 'pt' and not (s == 0 or (s == 1 and t >= 2)):
+        return np.zeros(M, bool)
+    if technique == 'lt' and t != 1:
+        return np.zeros(M, bool)
+    ok = np.ones(M, bool)
+    if s >= 1:
+        ok &= ~P['delta'][:, s - 1]
+        ok &= ~P['delta'][:, s] if s <= k - 1 else True
+    return ok
+
+
+def brute_force(kind, technique, P):
+    k = P['k']
+    d2, cosA, cosB, pL, pE = P['d2'], P['cosA'], P['cosB'], P['pL'], P['pE']
+    beta = {'power': 2.0, 'balance': 1.0}.get(kind)
+    dens = []
+    for s in range(k + 1):
+        t = k + 1 - s
+        p = np.ones(M)
+        for i in range(s):                                  # light-side vertices
+            if i == 0:
+                p = p * (P['p_direct_a'] if (s == 1 and t >= 2) else P['pA_light0'])
+            elif i == 1:
+                p = p * P['pdir_e'] * cosB[:, 0] / d2[:, 0]
+            else:
+                p = p * pL[:, i - 1] * cosB[:, i - 1] / d2[:, i - 1]
+        for i in range(s, k):                               # camera-side vertices (x_k: pinhole, 1)
+            if i == k - 1:
+                p = p * P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]
+            else:
+                p = p * pE[:, i + 1] * cosA[:, i] / d2[:, i]
+        dens.append(np.where(allowed(technique, k, s, P), p, 0.0))
+    dens = np.array(dens)
+    if kind == 'uniform':
+        hp = (dens > 0).astype(float)
+    else:
+        scale = np.maximum(dens.max(axis=0, keepdims=True), 1e-300)
+        hp = (dens / scale) ** beta
+    total = hp.sum(axis=0, keepdims=True)
+    return np.where(total > 0, hp / np.where(total > 0, total, 1.0), 0.0)
+
+
+def recursive(kind, technique, P):
+    k = P['k']
+    mis = MIS(kind, technique)
+    F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
+    B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
+    d2, cosA, cosB, pL, pE, delta = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
+    pdf_emit_w = F(P['pA_light0'] * P['pdir_e'])
+
+    def light_state(last):                                   # at x_last (last >= 1)
+        d_vc = mis.light_init(pdf_emit_w, F(cosA[:, 0]))
+        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(P['p_direct_a']), F(d2[:, 0]), F(cosB[:, 0]))
+        for i in range(1, last):
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta[:, i]))
+            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
+        return d_vcm, d_vc
+
+    def camera_state(last):                                  # at x_last (last <= k-1)
+        d_vcm, d_vc = mis.camera_init(F(P['p_cam_w']))
+        d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, k - 1]), F(cosA[:, k - 1]))
+        for i in range(k - 1, last, -1):
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta[:, i]))
+            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
+        return d_vcm, d_vc
+
+    out = []
+    for s in range(k + 1):
+        t = k + 1 - s
+        if s == 0:
+            c_vcm, c_vc = camera_state(0)
+            pdf_direct_a = P['pA_light0'] if k == 1 else P['p_direct_a']
+            w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w)
+        elif s == 1 and t == 1:
+            w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0]), F(P['pA_light0']))
+        elif s == 1:
+            c_vcm, c_vc = camera_state(1)
+            pdf_direct_w = P['p_direct_a'] * d2[:, 0] / cosA[:, 0]
+            w = mis.weight_s1(c_vcm, c_vc, F(pE[:, 1]), F(pdf_direct_w), pdf_emit_w,
+                              F(cosA[:, 0]), F(cosB[:, 0]), F(pL[:, 1]))
+        elif t == 1:
+            l_vcm, l_vc = light_state(k - 1)
+            w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]), F(pE[:, k - 1]))
+        else:
+            l_vcm, l_vc = light_state(s - 1)
+            c_vcm, c_vc = camera_state(s)
+            w = mis.weight_connect(l_vcm, l_vc, c_vcm, c_vc,
+                                   F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1]),
+                                   F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1]),
+                                   F(pE[:, s - 1]), F(pL[:, s]))
+        w = np.array(w if isinstance(w, mi.Float) else mi.Float(w), dtype=np.float64)
+        w = np.broadcast_to(w, (M,)) if w.size == 1 else w
+        out.append(np.where(allowed(technique, k, s, P), w, 0.0))
+    return np.array(out)
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
+@pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
+@pytest.mark.parametrize('k', list(range(1, 11)))
+def test_weights_partition_of_unity(k, kind, technique):
+    rng = np.random.default_rng(1000 * k + hash((kind, technique)) % 997)
+    P = random_paths(rng, k, delta_prob=0.3)
+    w_rec = recursive(kind, technique, P)
+    w_ref = brute_force(kind, technique, P)
+    assert np.all(np.isfinite(w_rec))
+    assert np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
+    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]).any(axis=0)
+    total = w_rec.sum(axis=0)
+    np.testing.assert_allclose(total[any_strategy], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
+    assert np.all(w_rec[:, ~any_strategy] == 0)
