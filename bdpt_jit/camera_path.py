@@ -39,9 +39,12 @@ class CameraTracer:
         si = scene.ray_intersect(ray)
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
-        pdf_cam_w = c.camera.pdf_w(ray.o, si.p)
+        pdf_cam_w = c.camera.pdf_w(si.p)
         d_vcm, d_vc = mis.camera_init(pdf_cam_w)
-        d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+        # Mitsuba starts camera rays on the near-clip plane: the first edge's length is measured
+        # from the pinhole, as every other strategy measures it.
+        dist2_cam = dr.squared_norm(si.p - c.camera.position)
+        d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
         L = mi.Color3f(0.0)
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)

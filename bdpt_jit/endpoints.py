@@ -94,8 +94,10 @@ class Camera:
         film = sensor.film()
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
         self.crop_size = mi.ScalarVector2f(film.crop_size())
+        # the pinhole (sample_ray's origins lie on the near-clip plane instead)
+        self.position = mi.Point3f(sensor.world_transform() @ mi.ScalarPoint3f(0, 0, 0))
 
-    def pdf_w(self, p_cam, p_hit):
+    def pdf_w(self, p_hit):
         """We(omega) of the direction from the camera to ``p_hit``: the camera's density per
         unit solid angle of that direction (pixel positions are uniform over the crop)."""
         it = dr.zeros(mi.Interaction3f)

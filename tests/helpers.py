@@ -1,0 +1,102 @@
+"""Rendering in independent batches and the statistical tests built on them.
+
+A render's error is estimated from K independent batches (different seeds): the batch means'
+spread gives the variance of their average without assuming anything about the per-sample
+distribution, and works for light-image splats, which cross pixels."""
+
+import hashlib
+import os
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from scipy import stats
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENES = os.path.join(REPO, 'scenes')
+CACHE = os.path.join(REPO, 'tests', '.refcache')
+
+
+def assert_finite(img, what='image'):
+    a = np.asarray(img)
+    bad = ~np.isfinite(a)
+    assert not bad.any(), f"{what}: {bad.sum()} non-finite values"
+    return a
+
+
+def render_batches(scene, integrator, spp, batches, seed0=0):
+    """K renders with seeds seed0..seed0+K-1; returns an array (K, H, W, 3). Every pixel of
+    every batch is checked finite."""
+    if isinstance(integrator, dict):
+        integrator = mi.load_dict(integrator)
+    out = []
+    for b in range(batches):
+        img = mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + b)
+        a = assert_finite(img, f'batch {b}')[:, :, :3]
+        out.append(np.array(a, dtype=np.float64))
+    return np.stack(out)
+
+
+def cached_reference(key_parts, make):
+    """Reference renders are cached under tests/.refcache (ignored by git), keyed by what
+    made them and the Mitsuba version; a clean checkout (CI) renders them afresh."""
+    key = hashlib.sha1(repr((mi.__version__,) + tuple(key_parts)).encode()).hexdigest()[:16]
+    path = os.path.join(CACHE, key + '.npy')
+    if os.path.exists(path):
+        return np.load(path)
+    arr = make()
+    os.makedirs(CACHE, exist_ok=True)
+    tmp = path + f'.{os.getpid()}.tmp.npy'
+    np.save(tmp, arr)
+    os.replace(tmp, path)
+    return arr
+
+
+def welch(a, b):
+    """Per-entry Welch t-test of the means of batches a (K1, ...) and b (K2, ...).
+    Returns two-sided p-values (1 where both are noise-free and equal, 0 where they differ)."""
+    k1, k2 = a.shape[0], b.shape[0]
+    m1, m2 = a.mean(0), b.mean(0)
+    v1, v2 = a.var(0, ddof=1) / k1, b.var(0, ddof=1) / k2
+    se2 = v1 + v2
+    diff = m1 - m2
+    with np.errstate(divide='ignore', invalid='ignore'):
+        t = diff / np.sqrt(se2)
+        df = se2 ** 2 / (v1 ** 2 / (k1 - 1) + v2 ** 2 / (k2 - 1))
+    p = 2 * stats.t.sf(np.abs(t), np.where(np.isfinite(df), df, 1.0))
+    exact = se2 == 0
+    p = np.where(exact, np.where(np.abs(diff) <= 1e-6 * np.maximum(np.abs(m1), np.abs(m2)) + 1e-12, 1.0, 0.0), p)
+    return p
+
+
+def agreement(a, b, alpha=0.01, mask=None):
+    """Welch's t per pixel and channel with Sidak's correction at level alpha over all the
+    tested entries, plus the same test on 4x4-pixel blocks (more power against small regional
+    bias). Returns (passed, message)."""
+    if mask is None:
+        mask = np.ones(a.shape[1:3], bool)
+    p_px = welch(a, b)[mask]
+    def blocks(x):
+        K, H, W, C = x.shape
+        h, w = H // 4 * 4, W // 4 * 4
+        return x[:, :h, :w].reshape(K, h // 4, 4, w // 4, 4, C).mean(axis=(2, 4))
+    bm = mask[:mask.shape[0] // 4 * 4, :mask.shape[1] // 4 * 4]
+    bm = bm.reshape(bm.shape[0] // 4, 4, bm.shape[1] // 4, 4).all(axis=(1, 3))
+    p_bl = welch(blocks(a), blocks(b))[bm]
+    msgs, ok = [], True
+    for name, p in (('pixel', p_px), ('4x4 block', p_bl)):
+        n = p.size
+        if n == 0:
+            continue
+        thr = 1 - (1 - alpha) ** (1 / n)
+        worst = p.min()
+        if worst < thr:
+            ok = False
+        msgs.append(f'{name}: {n} tests, min p {worst:.3g} vs Sidak threshold {thr:.3g}')
+    ma, mb = a.mean(axis=0)[mask].mean(), b.mean(axis=0)[mask].mean()
+    msgs.append(f'masked means {ma:.6g} vs {mb:.6g} ({(ma - mb) / mb * 100 if mb else 0:+.3f}%)')
+    return ok, '; '.join(msgs)
+
+
+def scene_path(name):
+    return os.path.join(SCENES, name)
