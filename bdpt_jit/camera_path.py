@@ -119,10 +119,11 @@ class CameraTracer:
             wo_world = si.to_world(bs.wo)
             if dr.hint(c.has_delta, mode='scalar'):
                 is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                pdf_rev_w = dr.select(is_delta, 0.0,
+                                      reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
             else:
-                is_delta = mi.Bool(False)
-            pdf_rev_w = dr.select(is_delta, 0.0,
-                                  reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
+                is_delta = None                       # no delta lobe in the scene: not traced
+                pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active)
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                          bs.pdf, pdf_rev_w, is_delta)
 

@@ -167,6 +167,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             'passes': len(passes),
             'spp': spp,
             'delta_handling': ctx.has_delta,
+            'light_pass': ctx.needs_light_pass,
+            'camera_pass': ctx.needs_camera_pass,
+            'light_vertex_levels': self.light_capacity(ctx),
             'time_s': _time.perf_counter() - t0,
         }
         return image

@@ -172,9 +172,13 @@ class LightTracer:
             corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
             active &= ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
             beta *= bsdf_w * corr
-            is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) if c.has_delta else mi.Bool(False)
-            pdf_rev_w = dr.select(is_delta, 0.0,
-                                  reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta))
+            if dr.hint(c.has_delta, mode='scalar'):
+                is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                pdf_rev_w = dr.select(is_delta, 0.0,
+                                      reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta))
+            else:
+                is_delta = None                       # no delta lobe in the scene: not traced
+                pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active)
             cos_out = dr.abs(dr.dot(si.n, wo_world))
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
 

@@ -89,10 +89,13 @@ class MIS:
     def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta):
         """Update at a vertex after sampling the next direction. ``pdf_fwd_w``: density of the
         sampled direction; ``pdf_rev_w``: density of sampling the incoming direction given the
-        outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal)."""
+        outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal).
+        ``is_delta=None``: the scene has no delta lobe, and the delta case is not traced."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
         d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm)  # [eq. 21, 22] vcm_i
         d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
+        if is_delta is None:
+            return d_vcm_smooth, d_vc_smooth
         # A delta vertex cannot be connected: the strategies that would end a subpath there
         # have density 0, and the forward and reverse discrete lobe probabilities cancel.
         d_vc_delta = d_vc * self.h(cos_out)                                             # [eq. 21] p<-/p-> = 1

@@ -4,8 +4,8 @@ that scope is refused with an error naming the plugin, never rendered wrongly.""
 import mitsuba as mi
 
 SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
-SUPPORTED_EMITTERS = ('AreaLight',)
-SUPPORTED_SENSORS = ('PerspectiveCamera',)
+SUPPORTED_EMITTERS = ('area',)
+SUPPORTED_SENSORS = ('perspective',)
 
 
 class UnsupportedSceneError(ValueError):
@@ -20,9 +20,20 @@ def check_variant():
             f"{', '.join(SUPPORTED_VARIANTS)} (mi.set_variant(...) before loading the scene)")
 
 
+# Mitsuba class names -> the plugin names users write in scene files
+PLUGIN_NAMES = {
+    'AreaLight': 'area', 'PointLight': 'point', 'SpotLight': 'spot', 'DirectionalEmitter': 'directional',
+    'ConstantBackgroundEmitter': 'constant', 'EnvironmentMapEmitter': 'envmap', 'SunSkyEmitter': 'sunsky',
+    'ProjectiveLight': 'projector', 'DirectionalArea': 'directionalarea',
+    'PerspectiveCamera': 'perspective', 'ThinLensCamera': 'thinlens', 'OrthographicCamera': 'orthographic',
+    'TelecentricLensCamera': 'telecentric', 'RadianceMeter': 'radiancemeter', 'IrradianceMeter': 'irradiancemeter',
+    'DistantSensor': 'distant', 'Batch': 'batch',
+}
+
+
 def _plugin_name(obj) -> str:
-    name = obj.class_name() if hasattr(obj, 'class_name') else type(obj).__name__
-    return str(name)
+    name = str(obj.class_name() if hasattr(obj, 'class_name') else type(obj).__name__)
+    return PLUGIN_NAMES.get(name, name)
 
 
 def check_scene(scene: mi.Scene, sensor: mi.Sensor):
@@ -48,8 +59,6 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
         if shape.interior_medium() is not None or shape.exterior_medium() is not None:
             raise UnsupportedSceneError(
                 f"bdpt: participating media are not supported (shape '{shape.id()}' has a medium)")
-    if scene.environment() is not None:
-        raise UnsupportedSceneError("bdpt: environment emitters are not supported yet")
 
 
 def scene_has_delta_bsdf(scene: mi.Scene) -> bool:

@@ -1,0 +1,89 @@
+"""Invariants that a correct renderer keeps exactly or in expectation: finite pixels, an exact
+zero without emitters, and a light image (t=1 strategies) whose brightness does not depend on
+resolution, samples per pixel or a crop window."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from helpers import assert_finite, render_batches, scene_path
+
+
+def cornell(res=32, crop=None, width=None, height=None, emitters=True):
+    d = mi.cornell_box()
+    d['sensor']['film'].update(width=width or res, height=height or res, rfilter={'type': 'box'})
+    if crop:
+        ox, oy, cw, ch = crop
+        d['sensor']['film'].update(crop_offset_x=ox, crop_offset_y=oy, crop_width=cw, crop_height=ch)
+    if not emitters:
+        d.pop('light')
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
+@pytest.mark.parametrize('max_depth', [0, 1, 3, -1])
+def test_no_emitters_renders_exact_zero(technique, max_depth):
+    scene = cornell(16, emitters=False)
+    img = np.array(mi.render(scene, integrator=mi.load_dict(
+        {'type': 'bdpt', 'technique': technique, 'max_depth': max_depth}), spp=4))
+    assert np.all(img == 0.0)
+
+
+def test_max_depth_zero_is_black_like_path():
+    scene = cornell(16)
+    mine = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 0}), spp=4))
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'path', 'max_depth': 0}), spp=4))
+    assert np.all(mine == 0.0) and np.all(ref == 0.0)
+
+
+@pytest.mark.parametrize('scene_name', ['cornell-box.xml', 'paper-fig6.xml', 'caustic.xml'])
+@pytest.mark.parametrize('technique,mis', [('bdpt', 'power'), ('bdpt', 'uniform'), ('pt', 'balance'), ('lt', 'power')])
+def test_every_pixel_finite(scene_name, technique, mis):
+    scene = mi.load_file(scene_path(scene_name), res=24, max_depth=-1)
+    img = mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': technique, 'mis': mis}), spp=8)
+    a = assert_finite(img)
+    assert a.min() >= 0.0
+
+
+def light_image_mean(scene, spp, batches, region):
+    """Mean of the light-tracing image (technique lt) over ``region`` (in crop pixels)."""
+    b = render_batches(scene, {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, spp, batches)
+    y0, y1, x0, x1 = region
+    per_batch = b[:, y0:y1, x0:x1, :].mean(axis=(1, 2, 3))
+    return per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(batches)
+
+
+def assert_same(a, b, what):
+    (m1, s1), (m2, s2) = a, b
+    z = abs(m1 - m2) / np.sqrt(s1 ** 2 + s2 ** 2)
+    assert z < 4, f'{what}: {m1:.5g} +- {s1:.2g} vs {m2:.5g} +- {s2:.2g} ({z:.1f} sigma)'
+
+
+def test_light_image_independent_of_resolution():
+    # same field of view: the whole image's mean brightness
+    a = light_image_mean(cornell(16), 64, 8, (0, 16, 0, 16))
+    b = light_image_mean(cornell(48), 8, 8, (0, 48, 0, 48))
+    assert_same(a, b, 'resolution 16 vs 48')
+
+
+def test_light_image_independent_of_spp():
+    a = light_image_mean(cornell(24), 8, 8, (0, 24, 0, 24))
+    b = light_image_mean(cornell(24), 64, 8, (0, 24, 0, 24))
+    assert_same(a, b, 'spp 8 vs 64')
+
+
+def test_light_image_independent_of_crop_window():
+    full = render_batches(cornell(32), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
+    crop = render_batches(cornell(32, crop=(8, 4, 16, 20)), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
+    assert crop.shape[1:3] == (20, 16)
+    f = full[:, 4:24, 8:24, :].mean(axis=(1, 2, 3))
+    c = crop.mean(axis=(1, 2, 3))
+    assert_same((f.mean(), f.std(ddof=1) / np.sqrt(8)), (c.mean(), c.std(ddof=1) / np.sqrt(8)), 'crop window')
+
+
+def test_non_square_film_matches_path():
+    scene = cornell(width=40, height=24)
+    mine = render_batches(scene, {'type': 'bdpt', 'max_depth': 3}, 32, 8).mean(axis=(1, 2, 3))
+    ref = render_batches(scene, {'type': 'path', 'max_depth': 3}, 256, 8, seed0=99).mean(axis=(1, 2, 3))
+    assert_same((mine.mean(), mine.std(ddof=1) / np.sqrt(8)), (ref.mean(), ref.std(ddof=1) / np.sqrt(8)), 'non-square film')

@@ -1,0 +1,95 @@
+"""The plugin contract: registration, parameters and their errors, refused scenes."""
+
+import mitsuba as mi
+import pytest
+
+import bdpt_jit
+from bdpt_jit.params import PARAMS, ParameterError
+from helpers import scene_path
+
+
+def error_chain(exc):
+    """Messages of an exception and its causes: ``mi.render`` runs the integrator inside a
+    Dr.Jit custom operation, which re-raises with the integrator's error as the cause."""
+    out = []
+    while exc is not None:
+        out.append(f'{type(exc).__name__}: {exc}')
+        exc = exc.__cause__ or exc.__context__
+    return '\n'.join(out)
+
+
+def test_registered_for_xml_and_dict():
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'mis': 'balance', 'technique': 'pt',
+                          'rr_depth': 3, 'hide_emitters': True, 'samples_per_pass': 1000})
+    assert integ.settings == {'max_depth': 4, 'mis': 'balance', 'technique': 'pt', 'rr_depth': 3,
+                              'hide_emitters': True, 'samples_per_pass': 1000}
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
+    assert isinstance(scene.integrator(), bdpt_jit.BDPTIntegrator)
+    xml = mi.load_string('<scene version="3.0.0"><integrator type="bdpt"><string name="mis" value="uniform"/>'
+                         '<integer name="max_depth" value="3"/></integrator></scene>')
+    assert xml.integrator().settings['mis'] == 'uniform' and xml.integrator().settings['max_depth'] == 3
+
+
+def test_defaults_come_from_the_table():
+    integ = mi.load_dict({'type': 'bdpt'})
+    assert integ.settings == {p.name: p.default for p in PARAMS}
+    doc = bdpt_jit.BDPTIntegrator.__doc__
+    for p in PARAMS:
+        assert f'`{p.name}`' in doc
+
+
+@pytest.mark.parametrize('params,needle', [
+    ({'mis': 'powr'}, "'mis' must be one of power, balance, uniform"),
+    ({'technique': 'vcm'}, "'technique' must be one of bdpt, pt, lt"),
+    ({'max_depth': -2}, "'max_depth' must be >= -1"),
+    ({'rr_depth': 0}, "'rr_depth' must be >= 1"),
+    ({'samples_per_pass': 0}, "'samples_per_pass' must be >= 1"),
+    ({'maxdepth': 3}, "unknown parameter 'maxdepth'"),
+    ({'hide_emitters': 'maybe'}, 'hide_emitters'),
+])
+def test_bad_parameters_name_the_parameter(params, needle):
+    with pytest.raises(Exception) as e:
+        mi.load_dict({'type': 'bdpt', **params})
+    assert needle in str(e.value)
+
+
+@pytest.mark.parametrize('emitter,name', [
+    ({'type': 'point', 'position': [0, 0.5, 0]}, 'point'),
+    ({'type': 'constant'}, 'constant'),
+    ({'type': 'directional', 'direction': [0, -1, 0]}, 'directional'),
+    ({'type': 'spot', 'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0.9, 0], target=[0, 0, 0], up=[0, 0, 1])}, 'spot'),
+])
+def test_unsupported_emitters_are_refused_by_name(emitter, name):
+    d = mi.cornell_box()
+    d['sensor']['film'].update(width=8, height=8)
+    d['extra'] = emitter
+    scene = mi.load_dict(d)
+    with pytest.raises(Exception) as e:
+        mi.render(scene, integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
+    msgs = error_chain(e.value)
+    assert f"UnsupportedSceneError: bdpt: emitter plugin '{name}' is not supported" in msgs
+
+
+def test_unsupported_sensor_and_media_are_refused():
+    d = mi.cornell_box()
+    d['sensor']['type'] = 'orthographic'
+    d['sensor'].pop('fov'); d['sensor'].pop('fov_axis', None)
+    d['sensor']['film'].update(width=8, height=8)
+    with pytest.raises(Exception) as e:
+        mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
+    assert "sensor plugin 'orthographic' is not supported" in error_chain(e.value)
+    d = mi.cornell_box()
+    d['sensor']['film'].update(width=8, height=8)
+    d['small-box']['interior'] = {'type': 'homogeneous'}
+    with pytest.raises(Exception) as e:
+        mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
+    assert 'participating media are not supported' in error_chain(e.value)
+
+
+def test_other_variants_are_refused():
+    mi.set_variant('scalar_rgb')
+    try:
+        with pytest.raises(bdpt_jit.UnsupportedSceneError, match="variant 'scalar_rgb' is not supported"):
+            bdpt_jit.BDPTIntegrator()
+    finally:
+        mi.set_variant('llvm_ad_rgb')
