@@ -9,6 +9,8 @@ import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
 from .endpoints import safe_div
+from .light_path import StoredVertex
+from .roulette import roulette
 
 
 class CameraTracer:
@@ -34,6 +36,7 @@ class CameraTracer:
         scene = c.scene
         max_edges = c.max_depth_edges
         film_pos, ray, beta = self.primary(sampler, n, spp_pass, pixel_start)
+        beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
 
         si = scene.ray_intersect(ray)
@@ -89,23 +92,20 @@ class CameraTracer:
                 j = mi.UInt32(0)
                 while dr.hint(conn_on & (j < n_light), label='bdpt_connect'):
                     slot = j * c.n_opaque + idx
-                    y_depth = dr.gather(mi.UInt32, store.depth, slot, conn_on)
-                    ok = conn_on & (y_depth + depth + 1 <= max_edges)
-                    y = dr.gather(mi.SurfaceInteraction3f, store.si, slot, ok)
+                    v = dr.gather(StoredVertex, store.v, slot, conn_on)
+                    ok = conn_on & (v.depth + depth + 1 <= max_edges)
+                    y = v.interaction(c.time)
                     to_y = y.p - si.p
                     dist2 = dr.squared_norm(to_y)
                     ok &= dist2 > 0
                     d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
                     f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
                     f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, y.bsdf(), -d, ok)
-                    y_beta = dr.gather(mi.Color3f, store.beta, slot, ok)
-                    contrib = beta * f_c * f_l * y_beta * safe_div(1.0, dist2)
+                    contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
                     ok &= ok_l & (dr.max(contrib) > 0)
                     ok &= ~scene.ray_test(si.spawn_ray_to(y.p), ok)
-                    y_vcm = dr.gather(mi.Float, store.d_vcm, slot, ok)
-                    y_vc = dr.gather(mi.Float, store.d_vc, slot, ok)
                     w = mis.weight_connect(
-                        y_vcm, y_vc, d_vcm, d_vc,
+                        v.d_vcm, v.d_vc, d_vcm, d_vc,
                         pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
                         pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
                         pdf_l_rev_w, pdf_c_rev_w)
@@ -127,10 +127,7 @@ class CameraTracer:
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                          bs.pdf, pdf_rev_w, is_delta)
 
-            q = dr.minimum(dr.max(beta), 0.95)
-            rr = active & (depth >= c.rr_depth)
-            beta[rr] *= dr.rcp(q)
-            active &= ~rr | (sampler.next_1d() < q)
+            beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
 
             prev = mi.Interaction3f(si)
             ray = si.spawn_ray(wo_world)

@@ -16,7 +16,7 @@ from .mis import MIS
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 
 UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
-BYTES_PER_LIGHT_VERTEX = 220    # SurfaceInteraction3f + beta + MIS quantities + depth
+BYTES_PER_LIGHT_VERTEX = 136    # light_path.StoredVertex: 34 words
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 

@@ -15,44 +15,67 @@ import mitsuba as mi
 
 from .connect import CTX_IMPORTANCE, adjoint_correction, eval_light_vertex, reverse_pdf_w
 from .endpoints import direction_sample_at, safe_div
+from .roulette import roulette
+
+
+class StoredVertex:
+    """One light vertex y_j as connections need it: the fields of its SurfaceInteraction3f that
+    BSDFs read (position, normals, shading frame, uv and its tangents, the shape and triangle),
+    its throughput and its MIS quantities. 34 words instead of the 51 of the full records."""
+    DRJIT_STRUCT = {
+        'p': mi.Point3f,          # position
+        'n': mi.Normal3f,         # geometric normal
+        'frame': mi.Frame3f,      # shading frame
+        'uv': mi.Point2f,         # surface parametrisation (textures)
+        'wi': mi.Vector3f,        # local direction towards y_{j-1}
+        'dp_du': mi.Vector3f,     # tangents (normal and bump maps)
+        'dp_dv': mi.Vector3f,
+        'shape': mi.ShapePtr,     # its BSDF
+        'prim_index': mi.UInt32,  # triangle (mesh attributes)
+        'beta': mi.Color3f,       # Le / p up to y_j, importance transport
+        'd_vcm': mi.Float,        # MIS quantities (mis.py)
+        'd_vc': mi.Float,
+        'depth': mi.UInt32,       # j: edges from y0
+    }
+
+    @staticmethod
+    def make(si, beta, d_vcm, d_vc, depth):
+        v = StoredVertex()
+        v.p, v.n, v.frame, v.uv, v.wi = si.p, si.n, si.sh_frame, si.uv, si.wi
+        v.dp_du, v.dp_dv, v.shape, v.prim_index = si.dp_du, si.dp_dv, si.shape, si.prim_index
+        v.beta, v.d_vcm, v.d_vc, v.depth = beta, d_vcm, d_vc, depth
+        return v
+
+    def interaction(self, time):
+        """The SurfaceInteraction3f that the vertex's BSDF is evaluated at."""
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(self.p))
+        si.t = mi.Float(1.0)
+        si.time = time
+        si.p, si.n, si.sh_frame, si.uv, si.wi = self.p, self.n, self.frame, self.uv, self.wi
+        si.dp_du, si.dp_dv, si.shape, si.prim_index = self.dp_du, self.dp_dv, self.shape, self.prim_index
+        return si
 
 
 @dataclass
 class LightStore:
-    """Vertices y_1, y_2, ... of N light subpaths at non-delta surfaces."""
+    """Vertices y_1, y_2, ... of N light subpaths at non-delta surfaces, level-major."""
     n: int                       # light subpaths (one per camera sample)
     capacity: int                # levels allocated
-    si: object = None            # mi.SurfaceInteraction3f, wi: local, towards y_{j-1}
-    beta: object = None          # mi.Color3f: Le / p up to y_j, importance transport
-    d_vcm: object = None         # mi.Float: MIS quantity (mis.py)
-    d_vc: object = None          # mi.Float: MIS quantity (mis.py)
-    depth: object = None         # mi.UInt32: j, edges from y0 to this vertex
+    v: object = None             # StoredVertex arrays of size n * capacity
     count: object = None         # mi.UInt32 per path: vertices stored
 
     def allocate(self):
-        size = max(self.n * self.capacity, 1)
-        self.si = dr.zeros(mi.SurfaceInteraction3f, size)
-        self.beta = dr.zeros(mi.Color3f, size)
-        self.d_vcm = dr.zeros(mi.Float, size)
-        self.d_vc = dr.zeros(mi.Float, size)
-        self.depth = dr.zeros(mi.UInt32, size)
+        self.v = dr.zeros(StoredVertex, max(self.n * self.capacity, 1))
         self.count = dr.zeros(mi.UInt32, self.n)
 
     def grow(self):
         """Double the levels, keeping what is stored (level-major: a plain prefix copy)."""
-        old = (self.si, self.beta, self.d_vcm, self.d_vc, self.depth)
-        old_size = self.n * self.capacity
+        old, old_size, count = self.v, self.n * self.capacity, self.count
         self.capacity *= 2
-        count = self.count
         self.allocate()
         self.count = count
-        idx = dr.arange(mi.UInt32, old_size)
-        for new, prev in zip((self.si, self.beta, self.d_vcm, self.d_vc, self.depth), old):
-            dr.scatter(new, prev, idx)
-        dr.eval(self.si, self.beta, self.d_vcm, self.d_vc, self.depth)
-
-    def targets(self):
-        return [self.si, self.beta, self.d_vcm, self.d_vc, self.depth]
+        dr.scatter(self.v, old, dr.arange(mi.UInt32, old_size))
+        dr.eval(self.v)
 
 
 class LightTracer:
@@ -112,11 +135,12 @@ class LightTracer:
         """Trace N light subpaths; splat t=1 strategies; fill ``store`` (or None)."""
         c = self.ctx
         active, si, beta, d_vcm, d_vc, depth = self.start(sampler, n, film)
+        beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
         count = dr.zeros(mi.UInt32, n)
         while True:
             active, si, beta, d_vcm, d_vc, depth, count = self.walk(
-                sampler, idx, film, store, active, si, beta, d_vcm, d_vc, depth, count)
+                sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count)
             if store is None:
                 break
             store.count = count
@@ -125,18 +149,18 @@ class LightTracer:
             store.grow()             # lanes paused on a full storage resume with more levels
 
     @dr.syntax
-    def walk(self, sampler, idx, film, store, active, si, beta, d_vcm, d_vc, depth, count):
+    def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count):
         c = self.ctx
         mis = c.mis
         store_on = store is not None
         capacity = store.capacity if store_on else 0
         max_edges = c.max_depth_edges
-        st_si, st_beta, st_vcm, st_vc, st_depth = (store.targets() if store_on else (None,) * 5)
+        st_v = store.v if store_on else None
         pausing = store_on and c.unbounded     # bounded storage is sized to never fill
         cap_eff = capacity if pausing else 0xFFFFFFFF
         while dr.hint(active & (count < cap_eff),
                       label='bdpt_light_subpath',
-                      exclude=[st_si, st_beta, st_vcm, st_vc, st_depth]):
+                      exclude=[st_v]):
             bsdf = si.bsdf()
             smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
 
@@ -144,11 +168,7 @@ class LightTracer:
             if dr.hint(store_on, mode='scalar'):
                 do_store = active & smooth & (depth + 2 <= max_edges)
                 slot = count * c.n_opaque + idx
-                dr.scatter(st_si, si, slot, do_store)
-                dr.scatter(st_beta, beta, slot, do_store)
-                dr.scatter(st_vcm, d_vcm, slot, do_store)
-                dr.scatter(st_vc, d_vc, slot, do_store)
-                dr.scatter(st_depth, depth, slot, do_store)
+                dr.scatter(st_v, StoredVertex.make(si, beta, d_vcm, d_vc, depth), slot, do_store)
                 count[do_store] += 1
 
             # ---------------- t = 1: connect y_depth to the camera ----------------
@@ -183,10 +203,7 @@ class LightTracer:
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
 
             # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
-            q = dr.minimum(dr.max(beta), 0.95)
-            rr = active & (depth >= c.rr_depth)
-            beta[rr] *= dr.rcp(q)
-            active &= ~rr | (sampler.next_1d() < q)
+            beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
 
             ray = si.spawn_ray(wo_world)
             si = c.scene.ray_intersect(ray, active)

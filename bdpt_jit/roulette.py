@@ -1,0 +1,16 @@
+"""Russian roulette for both subpaths. The survival probability follows the throughput
+relative to the subpath's start (as Mitsuba's `path` does for camera paths, whose throughput
+starts at 1): a light subpath's throughput also carries Le / p of its emitter, which would
+otherwise keep the probability at its cap and never end a light subpath early."""
+
+import drjit as dr
+
+
+def roulette(beta, beta_start, depth, rr_depth, active, u):
+    """Returns (beta, active) after the roulette at ``depth`` (edges so far); survival is
+    min(max(beta) / beta_start, 0.95) from ``rr_depth`` on."""
+    q = dr.minimum(dr.max(beta) * dr.select(beta_start > 0, dr.rcp(beta_start), 0.0), 0.95)
+    rr = active & (depth >= rr_depth)
+    beta = dr.select(rr, beta * dr.rcp(dr.select(q > 0, q, 1.0)), beta)
+    active = active & (~rr | (u < q))
+    return beta, active
