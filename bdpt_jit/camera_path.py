@@ -90,7 +90,9 @@ class CameraTracer:
             if dr.hint(c.use_connect, mode='scalar'):
                 conn_on = active & smooth
                 j = mi.UInt32(0)
-                while dr.hint(conn_on & (j < n_light), label='bdpt_connect'):
+                # stored depths grow with j (depth_j >= j + 1): beyond this, max_depth forbids all
+                j_end = dr.minimum(n_light, mi.UInt32(max_edges) - dr.minimum(depth + 1, max_edges))
+                while dr.hint(conn_on & (j < j_end), label='bdpt_connect'):
                     slot = j * c.n_opaque + idx
                     v = dr.gather(StoredVertex, store.v, slot, conn_on)
                     ok = conn_on & (v.depth + depth + 1 <= max_edges)
@@ -100,7 +102,7 @@ class CameraTracer:
                     ok &= dist2 > 0
                     d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
                     f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
-                    f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, y.bsdf(), -d, ok)
+                    f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok)
                     contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
                     ok &= ok_l & (dr.max(contrib) > 0)
                     ok &= ~scene.ray_test(si.spawn_ray_to(y.p), ok)

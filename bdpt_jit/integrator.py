@@ -16,7 +16,7 @@ from .mis import MIS
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 
 UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
-BYTES_PER_LIGHT_VERTEX = 136    # light_path.StoredVertex: 34 words
+BYTES_PER_LIGHT_VERTEX = 140    # light_path.StoredVertex: 35 words
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 
@@ -73,8 +73,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props=None):
         check_variant()
-        super().__init__(mi.Properties() if props is None else props)
         self.settings = P.parse_properties(props if props is not None else {})
+        # The base class would read Mitsuba's own (deprecated) 'samples_per_pass' and warn;
+        # every parameter is read from the table above instead.
+        super().__init__(mi.Properties())
         s = self.settings
         self.max_depth = s['max_depth']
         self.rr_depth = s['rr_depth']
@@ -144,6 +146,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ctx.splat_scale = acc.splat_scale(spp)
         passes = self.plan_passes(ctx, spp, n_pixels)
         t0 = _time.perf_counter()
+        levels_used = 0
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(passes):
             n = spp_pass * pixel_count
             ctx.n_opaque = dr.opaque(mi.UInt32, n)
@@ -157,6 +160,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                     store = LightStore(n=n, capacity=cap)
                     store.allocate()
                 LightTracer(ctx).trace(sampler, n, acc, store)
+                if store is not None:
+                    levels_used = max(levels_used, store.capacity)
             if ctx.needs_camera_pass:
                 CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
             dr.eval(acc.cam.tensor(), acc.lt.tensor())
@@ -170,6 +175,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             'light_pass': ctx.needs_light_pass,
             'camera_pass': ctx.needs_camera_pass,
             'light_vertex_levels': self.light_capacity(ctx),
+            'light_vertex_levels_used': levels_used,
             'time_s': _time.perf_counter() - t0,
         }
         return image

@@ -21,7 +21,7 @@ from .roulette import roulette
 class StoredVertex:
     """One light vertex y_j as connections need it: the fields of its SurfaceInteraction3f that
     BSDFs read (position, normals, shading frame, uv and its tangents, the shape and triangle),
-    its throughput and its MIS quantities. 34 words instead of the 51 of the full records."""
+    its throughput and its MIS quantities. 35 words instead of the 51 of the full records."""
     DRJIT_STRUCT = {
         'p': mi.Point3f,          # position
         'n': mi.Normal3f,         # geometric normal
@@ -30,7 +30,8 @@ class StoredVertex:
         'wi': mi.Vector3f,        # local direction towards y_{j-1}
         'dp_du': mi.Vector3f,     # tangents (normal and bump maps)
         'dp_dv': mi.Vector3f,
-        'shape': mi.ShapePtr,     # its BSDF
+        'shape': mi.ShapePtr,     # its shape (mesh attributes)
+        'bsdf': mi.BSDFPtr,       # its BSDF (saves a virtual call per connection)
         'prim_index': mi.UInt32,  # triangle (mesh attributes)
         'beta': mi.Color3f,       # Le / p up to y_j, importance transport
         'd_vcm': mi.Float,        # MIS quantities (mis.py)
@@ -39,8 +40,9 @@ class StoredVertex:
     }
 
     @staticmethod
-    def make(si, beta, d_vcm, d_vc, depth):
+    def make(si, bsdf, beta, d_vcm, d_vc, depth):
         v = StoredVertex()
+        v.bsdf = bsdf
         v.p, v.n, v.frame, v.uv, v.wi = si.p, si.n, si.sh_frame, si.uv, si.wi
         v.dp_du, v.dp_dv, v.shape, v.prim_index = si.dp_du, si.dp_dv, si.shape, si.prim_index
         v.beta, v.d_vcm, v.d_vc, v.depth = beta, d_vcm, d_vc, depth
@@ -168,7 +170,7 @@ class LightTracer:
             if dr.hint(store_on, mode='scalar'):
                 do_store = active & smooth & (depth + 2 <= max_edges)
                 slot = count * c.n_opaque + idx
-                dr.scatter(st_v, StoredVertex.make(si, beta, d_vcm, d_vc, depth), slot, do_store)
+                dr.scatter(st_v, StoredVertex.make(si, bsdf, beta, d_vcm, d_vc, depth), slot, do_store)
                 count[do_store] += 1
 
             # ---------------- t = 1: connect y_depth to the camera ----------------

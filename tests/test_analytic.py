@@ -104,8 +104,10 @@ def test_unbounded_depth(technique):
     storage grows as needed (no vertex dropped)."""
     rho = 0.9
     scene = sphere_scene(rho, res=4)
-    integ = {'type': 'bdpt', 'max_depth': -1, 'technique': technique, 'rr_depth': 3}
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': -1, 'technique': technique, 'rr_depth': 3})
     b = render_batches(scene, integ, spp=64, batches=8)
+    if technique == 'bdpt':   # the 8 initial levels were outgrown, and kept
+        assert integ.last_render_info['light_vertex_levels_used'] > 8
     per_batch = b.mean(axis=(1, 2, 3))
     mean, sigma = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))
     expected = LE / (1 - rho)
