@@ -2,14 +2,17 @@
 - s=0: the camera subpath hits an emitter;
 - s=1: emitter sampling from a camera vertex (Mitsuba's ``sample_emitter_direction``);
 - s>=2, t>=2: connection of a camera vertex to each stored light vertex, with a shadow ray.
-No connection is made at a delta vertex (a BSDF without a smooth component)."""
+No connection is made at a delta vertex (a BSDF without a smooth component).
+
+Each strategy is a function of its own: Dr.Jit's loops carry every variable assigned in their
+body as loop state, so the loops below assign only what really carries over between
+iterations, and the temporaries of each strategy stay inside its function."""
 
 import drjit as dr
 import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
 from .endpoints import safe_div
-from .light_path import StoredVertex
 from .roulette import roulette
 
 
@@ -29,6 +32,94 @@ class CameraTracer:
         ray, ray_w = c.sensor.sample_ray(c.time, sampler.next_1d(), adjusted, sampler.next_2d())
         return pos + c.camera.crop_offset, ray, mi.Color3f(ray_w)
 
+    # ------------------------------------------------------------------ strategies
+    def strategy_s0(self, si, ray, prev, depth, beta, d_vcm, d_vc, active):
+        """s=0: the camera subpath hits an emitter at ``si``."""
+        c = self.ctx
+        emitter = si.emitter(c.scene)
+        hit_em = active & (emitter != None)            # noqa: E711 (pointer test)
+        if c.hide_emitters:
+            hit_em &= depth > 1
+        le = emitter.eval(si, hit_em)
+        ds = mi.DirectionSample3f(c.scene, si, prev)
+        pdf_y0_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ds)
+        pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
+                                 c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
+        pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d)
+        w = c.mis.weight_s0(d_vcm, d_vc, pdf_direct_a, pdf_emit_w)
+        return dr.select(hit_em, beta * le * w, 0.0)
+
+    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active):
+        """s=1: emitter sampling from the camera vertex ``si``."""
+        c = self.ctx
+        ds, em_w = c.scene.sample_emitter_direction(si, u, True, active)
+        # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
+        # caller's mask too (it then dropped the connections of failed emitter samples)
+        active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
+        f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active)
+        pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d)
+        cos_e = dr.abs(dr.dot(ds.n, ds.d))
+        cos_z = dr.abs(dr.dot(si.n, ds.d))
+        w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, ds.pdf, pdf_emit_w, cos_e, cos_z, pdf_rev_w)
+        return dr.select(active, beta * f * em_w * w, 0.0)
+
+    def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active):
+        """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot``."""
+        c = self.ctx
+        v = dr.gather(record, st_v, slot, active)
+        ok = active & (v.depth + depth + 1 <= c.max_depth_edges)
+        y = v.interaction(c.time)
+        to_y = y.p - si.p
+        dist2 = dr.squared_norm(to_y)
+        ok &= dist2 > 0
+        d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
+        f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
+        f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok)
+        contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
+        ok &= ok_l & (dr.max(contrib) > 0)
+        ok &= ~c.scene.ray_test(si.spawn_ray_to(y.p), ok)
+        w = c.mis.weight_connect(
+            v.d_vcm, v.d_vc, d_vcm, d_vc,
+            pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
+            pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
+            pdf_l_rev_w, pdf_c_rev_w)
+        return dr.select(ok, contrib * w, 0.0)
+
+    @dr.syntax
+    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active):
+        """Sum of the connections of camera vertex ``si`` to the light subpath of its sample."""
+        c = self.ctx
+        n_light, record, st_v = store.count, store.record, store.v   # read before the loop
+        # stored depths grow with j (depth_j >= j + 1): beyond j_end max_depth forbids all
+        j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(depth + 1, c.max_depth_edges))
+        L = mi.Color3f(0.0)
+        j = mi.UInt32(0)
+        while dr.hint(active & (j < j_end), label='bdpt_connect'):
+            L += self.connect_one(record, st_v, j * c.n_opaque + idx, si, bsdf, depth, beta, d_vcm, d_vc, active)
+            j += 1
+        return L
+
+    def scatter(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+        """Sample the next direction; update throughput, MIS quantities and the roulette.
+        Returns the next ray and the updated state."""
+        c = self.ctx
+        bs, bsdf_w = bsdf.sample(CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+        active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
+        beta = beta * bsdf_w
+        wo_world = si.to_world(bs.wo)
+        if c.has_delta:
+            is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            pdf_rev_w = dr.select(is_delta, 0.0,
+                                  reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
+        else:
+            is_delta = None                           # no delta lobe in the scene: not traced
+            pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active)
+        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
+                                       bs.pdf, pdf_rev_w, is_delta)
+        beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
+        return si.spawn_ray(wo_world), beta, d_vcm, d_vc, active
+
+    # ------------------------------------------------------------------ walk
     @dr.syntax
     def trace(self, sampler, n, spp_pass, pixel_start, film, store):
         c = self.ctx
@@ -51,88 +142,29 @@ class CameraTracer:
         L = mi.Color3f(0.0)
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
-        n_light = store.count if store is not None else mi.UInt32(0)
 
         while dr.hint(active, label='bdpt_camera_subpath'):
             bsdf = si.bsdf(ray)
-            smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
 
             # ---------------- s = 0: the camera subpath hits an emitter ----------------
             if dr.hint(c.use_s0, mode='scalar'):
-                emitter = si.emitter(scene)
-                hit_em = active & (emitter != None)    # noqa: E711 (pointer test)
-                if dr.hint(c.hide_emitters, mode='scalar'):
-                    hit_em &= depth > 1
-                le = emitter.eval(si, hit_em)
-                ds = mi.DirectionSample3f(scene, si, prev)
-                pdf_y0_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ds)
-                pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
-                                         c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
-                pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d)
-                w = mis.weight_s0(d_vcm, d_vc, pdf_direct_a, pdf_emit_w)
-                L[hit_em] += beta * le * w
+                L += self.strategy_s0(si, ray, prev, depth, beta, d_vcm, d_vc, active)
 
             active &= depth + 1 <= max_edges          # every strategy below adds an edge
+            smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
 
             # ---------------- s = 1: emitter sampling ----------------
             if dr.hint(c.use_s1, mode='scalar'):
-                em_on = active & smooth
-                ds, em_w = scene.sample_emitter_direction(si, sampler.next_2d(), True, em_on)
-                em_on &= (ds.pdf > 0) & (dr.max(em_w) > 0)
-                f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, em_on)
-                pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d)
-                cos_e = dr.abs(dr.dot(ds.n, ds.d))
-                cos_z = dr.abs(dr.dot(si.n, ds.d))
-                w = mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, ds.pdf, pdf_emit_w, cos_e, cos_z, pdf_rev_w)
-                L[em_on] += beta * f * em_w * w
+                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth)
 
             # ---------------- s >= 2: connect to the light subpath ----------------
             if dr.hint(c.use_connect, mode='scalar'):
-                conn_on = active & smooth
-                j = mi.UInt32(0)
-                # stored depths grow with j (depth_j >= j + 1): beyond this, max_depth forbids all
-                j_end = dr.minimum(n_light, mi.UInt32(max_edges) - dr.minimum(depth + 1, max_edges))
-                while dr.hint(conn_on & (j < j_end), label='bdpt_connect'):
-                    slot = j * c.n_opaque + idx
-                    v = dr.gather(StoredVertex, store.v, slot, conn_on)
-                    ok = conn_on & (v.depth + depth + 1 <= max_edges)
-                    y = v.interaction(c.time)
-                    to_y = y.p - si.p
-                    dist2 = dr.squared_norm(to_y)
-                    ok &= dist2 > 0
-                    d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
-                    f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
-                    f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok)
-                    contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
-                    ok &= ok_l & (dr.max(contrib) > 0)
-                    ok &= ~scene.ray_test(si.spawn_ray_to(y.p), ok)
-                    w = mis.weight_connect(
-                        v.d_vcm, v.d_vc, d_vcm, d_vc,
-                        pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
-                        pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
-                        pdf_l_rev_w, pdf_c_rev_w)
-                    L[ok] += contrib * w
-                    j += 1
+                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth)
 
             # ---------------- continue the walk ----------------
-            bs, bsdf_w = bsdf.sample(CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
-            active &= (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
-            beta *= bsdf_w
-            wo_world = si.to_world(bs.wo)
-            if dr.hint(c.has_delta, mode='scalar'):
-                is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-                pdf_rev_w = dr.select(is_delta, 0.0,
-                                      reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
-            else:
-                is_delta = None                       # no delta lobe in the scene: not traced
-                pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
-                                         bs.pdf, pdf_rev_w, is_delta)
-
-            beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-
+            ray, beta, d_vcm, d_vc, active = self.scatter(
+                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             prev = mi.Interaction3f(si)
-            ray = si.spawn_ray(wo_world)
             si = scene.ray_intersect(ray, active)
             active &= si.is_valid()
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))

@@ -11,12 +11,12 @@ from . import params as P
 from .camera_path import CameraTracer
 from .endpoints import Camera, EmitterTable
 from .film import FilmAccumulator
-from .light_path import LightStore, LightTracer
+from .light_path import LightStore, LightTracer, StoredVertex, StoredVertexTangents
 from .mis import MIS
-from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
+from .scene_check import check_scene, check_variant, scene_has_delta_bsdf, scene_perturbs_normals
 
 UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
-BYTES_PER_LIGHT_VERTEX = 140    # light_path.StoredVertex: 35 words
+BYTES_PER_LIGHT_VERTEX = 108    # light_path.StoredVertexTangents: 27 words
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 
@@ -157,7 +157,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if ctx.needs_light_pass:
                 cap = self.light_capacity(ctx)
                 if cap > 0:
-                    store = LightStore(n=n, capacity=cap)
+                    store = LightStore(n=n, capacity=cap, record=StoredVertexTangents
+                                       if scene_perturbs_normals(scene) else StoredVertex)
                     store.allocate()
                 LightTracer(ctx).trace(sampler, n, acc, store)
                 if store is not None:

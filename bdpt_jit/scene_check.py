@@ -68,3 +68,13 @@ def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
         if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta):
             return True
     return False
+
+
+def scene_perturbs_normals(scene: mi.Scene) -> bool:
+    """True if a BSDF of the scene perturbs the shading frame from the surface tangents
+    (normal or bump map): light vertices then also store the tangents."""
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None and any(name in str(bsdf) for name in ('NormalMap', 'BumpMap')):
+            return True
+    return False
