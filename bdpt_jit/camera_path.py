@@ -33,7 +33,7 @@ class CameraTracer:
         return pos + c.camera.crop_offset, ray, mi.Color3f(ray_w)
 
     # ------------------------------------------------------------------ strategies
-    def strategy_s0(self, si, ray, prev, depth, beta, d_vcm, d_vc, active):
+    def strategy_s0(self, si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos=None):
         """s=0: the camera subpath hits an emitter at ``si``."""
         c = self.ctx
         emitter = si.emitter(c.scene)
@@ -47,23 +47,32 @@ class CameraTracer:
                                  c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
         pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d)
         w = c.mis.weight_s0(d_vcm, d_vc, pdf_direct_a, pdf_emit_w)
+        if c.layers is not None:
+            c.layers.add(0, depth + 1, film_pos, beta * le * (w * c.inv_spp), beta * le * c.inv_spp, hit_em)
         return dr.select(hit_em, beta * le * w, 0.0)
 
-    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active):
+    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None):
         """s=1: emitter sampling from the camera vertex ``si``."""
         c = self.ctx
-        ds, em_w = c.scene.sample_emitter_direction(si, u, True, active)
+        ds, em_w = c.scene.sample_emitter_direction(si, u, False, active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
+        blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), active)
+        if c.stats is not None:
+            c.stats.shadow(active, blocked)
+        active &= ~blocked
         f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d)
         cos_e = dr.abs(dr.dot(ds.n, ds.d))
         cos_z = dr.abs(dr.dot(si.n, ds.d))
         w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, ds.pdf, pdf_emit_w, cos_e, cos_z, pdf_rev_w)
+        if c.layers is not None:
+            value = beta * f * em_w * c.inv_spp
+            c.layers.add(1, depth + 1, film_pos, value * w, value, active)
         return dr.select(active, beta * f * em_w * w, 0.0)
 
-    def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active):
+    def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None):
         """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot``."""
         c = self.ctx
         v = dr.gather(record, st_v, slot, active)
@@ -77,16 +86,21 @@ class CameraTracer:
         f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok)
         contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
         ok &= ok_l & (dr.max(contrib) > 0)
-        ok &= ~c.scene.ray_test(si.spawn_ray_to(y.p), ok)
+        blocked = c.scene.ray_test(si.spawn_ray_to(y.p), ok)
+        if c.stats is not None:
+            c.stats.shadow(ok, blocked)
+        ok &= ~blocked
         w = c.mis.weight_connect(
             v.d_vcm, v.d_vc, d_vcm, d_vc,
             pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
             pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
             pdf_l_rev_w, pdf_c_rev_w)
+        if c.layers is not None:
+            c.layers.add(v.depth + 1, depth + 1, film_pos, contrib * (w * c.inv_spp), contrib * c.inv_spp, ok)
         return dr.select(ok, contrib * w, 0.0)
 
     @dr.syntax
-    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active):
+    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None):
         """Sum of the connections of camera vertex ``si`` to the light subpath of its sample."""
         c = self.ctx
         n_light, record, st_v = store.count, store.record, store.v   # read before the loop
@@ -95,7 +109,8 @@ class CameraTracer:
         L = mi.Color3f(0.0)
         j = mi.UInt32(0)
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
-            L += self.connect_one(record, st_v, j * c.n_opaque + idx, si, bsdf, depth, beta, d_vcm, d_vc, active)
+            L += self.connect_one(record, st_v, j * c.n_opaque + idx, si, bsdf, depth, beta, d_vcm, d_vc,
+                                  active, film_pos)
             j += 1
         return L
 
@@ -131,6 +146,8 @@ class CameraTracer:
         idx = dr.arange(mi.UInt32, n)
 
         si = scene.ray_intersect(ray)
+        if c.stats is not None:
+            c.stats.ray('camera', mi.Bool(True), si.is_valid())
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
         pdf_cam_w = c.camera.pdf_w(si.p)
@@ -148,24 +165,26 @@ class CameraTracer:
 
             # ---------------- s = 0: the camera subpath hits an emitter ----------------
             if dr.hint(c.use_s0, mode='scalar'):
-                L += self.strategy_s0(si, ray, prev, depth, beta, d_vcm, d_vc, active)
+                L += self.strategy_s0(si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos)
 
             active &= depth + 1 <= max_edges          # every strategy below adds an edge
             smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
 
             # ---------------- s = 1: emitter sampling ----------------
             if dr.hint(c.use_s1, mode='scalar'):
-                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth)
+                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos)
 
             # ---------------- s >= 2: connect to the light subpath ----------------
             if dr.hint(c.use_connect, mode='scalar'):
-                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth)
+                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos)
 
             # ---------------- continue the walk ----------------
             ray, beta, d_vcm, d_vc, active = self.scatter(
                 sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             prev = mi.Interaction3f(si)
             si = scene.ray_intersect(ray, active)
+            if dr.hint(c.stats is not None, mode='scalar'):
+                c.stats.ray('camera', active, si.is_valid())
             active &= si.is_valid()
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
             depth += 1

@@ -59,3 +59,42 @@ class FilmAccumulator:
         self.film.clear()
         self.film.put_block(block)
         return self.film.develop()
+
+
+class StrategyLayers:
+    """One image per (s,t) strategy, weighted (as it enters the render) and unweighted (its
+    estimate alone), like pbrt's visualizestrategies and Mitsuba 0.6's debug images.
+    Contributions are added to the pixel that contains them (nearest pixel), camera samples
+    scaled by 1/spp and splats by their usual scale, so with a box filter the weighted layers
+    sum to the rendered image. Paths of more than ``max_length`` edges go to ``other``."""
+
+    def __init__(self, film: mi.Film, max_length: int):
+        self.max_length = max(int(max_length), 1)
+        self.w, self.h = (int(v) for v in film.crop_size())
+        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
+        self.names = []
+        for k in range(1, self.max_length + 1):
+            for s in range(0, k + 1):
+                self.names.append(f's{s}_t{k + 1 - s}')
+        self.names.append('other')
+        self.buf = dr.zeros(mi.Float, len(self.names) * 2 * self.w * self.h * 3)
+
+    def layer_index(self, s, t):
+        k = s + t - 1
+        return dr.select(k <= self.max_length, (k - 1) * (k + 2) // 2 + s, len(self.names) - 1)
+
+    def add(self, s, t, film_pos, weighted, unweighted, active):
+        s, t = mi.UInt32(s), mi.UInt32(t)
+        p = mi.Point2i(dr.floor(film_pos - self.crop_offset))
+        inside = active & (p.x >= 0) & (p.y >= 0) & (p.x < self.w) & (p.y < self.h)
+        pixel = mi.UInt32(dr.clip(p.y, 0, self.h - 1) * self.w + dr.clip(p.x, 0, self.w - 1))
+        base = (self.layer_index(s, t) * 2 * self.w * self.h + pixel) * 3
+        for kind, value in ((0, weighted), (1, unweighted)):
+            off = base + kind * self.w * self.h * 3
+            for c in range(3):
+                dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value[c], off + c, inside)
+
+    def images(self):
+        import numpy as np
+        a = np.array(self.buf).reshape(len(self.names), 2, self.h, self.w, 3)
+        return {name: {'weighted': a[i, 0], 'unweighted': a[i, 1]} for i, name in enumerate(self.names)}

@@ -1,8 +1,6 @@
 """The ``bdpt`` integrator plugin: bidirectional path tracing with every (s,t) strategy."""
 
 import time as _time
-from dataclasses import dataclass, field
-from typing import Optional
 
 import drjit as dr
 import mitsuba as mi
@@ -10,7 +8,8 @@ import mitsuba as mi
 from . import params as P
 from .camera_path import CameraTracer
 from .endpoints import Camera, EmitterTable
-from .film import FilmAccumulator
+from .film import FilmAccumulator, StrategyLayers
+from .stats import RayStats
 from .light_path import LightStore, LightTracer, StoredVertex, StoredVertexTangents
 from .mis import MIS
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf, scene_perturbs_normals
@@ -21,29 +20,23 @@ BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 
 
-@dataclass
 class Context:
     """What the kernels are specialised to: the scene, the settings, and which strategies
-    are possible. Plain Python values here become trace-time constants."""
-    scene: object
-    sensor: object
-    camera: Camera
-    emitters: EmitterTable
-    mis: MIS
-    time: float
-    max_depth_edges: int
-    unbounded: bool
-    rr_depth: int
-    hide_emitters: bool
-    has_delta: bool
-    use_s0: bool
-    use_s1: bool
-    use_connect: bool
-    splat_y0: bool
-    splat_t1: bool
-    splat_scale: float = 1.0
-    n_opaque: object = None
-    stats: Optional[object] = None
+    are possible. Plain Python values here become trace-time constants. (A plain class on
+    purpose: Dr.Jit traverses dataclasses, and one referenced inside a loop becomes loop state.)
+
+    Fields: scene, sensor, camera (endpoints.Camera), emitters (endpoints.EmitterTable),
+    mis (mis.MIS), time, max_depth_edges, unbounded, rr_depth, hide_emitters, has_delta,
+    use_s0, use_s1, use_connect, splat_y0, splat_t1, splat_scale, n_opaque (the pass size as
+    an opaque UInt32), layers (film.StrategyLayers or None), inv_spp."""
+
+    def __init__(self, **fields):
+        self.splat_scale = 1.0
+        self.inv_spp = 1.0
+        self.n_opaque = None
+        self.layers = None
+        self.stats = None
+        self.__dict__.update(fields)
 
     @property
     def needs_light_pass(self):
@@ -84,6 +77,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.mis_kind = s['mis']
         self.hide_emitters = s['hide_emitters']
         self.samples_per_pass = s['samples_per_pass']
+        self.strategy_images = None     # after a render with strategy_images: the layers (dict)
         self.last_render_info = {}
 
     # ------------------------------------------------------------------ setup
@@ -144,6 +138,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         crop = film.crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
         ctx.splat_scale = acc.splat_scale(spp)
+        ctx.inv_spp = 1.0 / spp
+        if self.settings['statistics']:
+            ctx.stats = RayStats()
+        if self.settings['strategy_images']:
+            ctx.layers = StrategyLayers(film, max_length=min(ctx.max_depth_edges, 8))
         passes = self.plan_passes(ctx, spp, n_pixels)
         t0 = _time.perf_counter()
         levels_used = 0
@@ -166,8 +165,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if ctx.needs_camera_pass:
                 CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
             dr.eval(acc.cam.tensor(), acc.lt.tensor())
+            if ctx.stats is not None:
+                ctx.stats.end_pass()
         image = acc.develop()
         dr.eval(image)
+        self.strategy_images = ctx.layers.images() if ctx.layers is not None else None
         self.last_render_info = {
             'strategies': ctx.strategies(),
             'passes': len(passes),
@@ -179,6 +181,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             'light_vertex_levels_used': levels_used,
             'time_s': _time.perf_counter() - t0,
         }
+        if ctx.stats is not None:
+            self.last_render_info['rays'] = ctx.stats.summary()
         return image
 
     def sample(self, *args, **kwargs):

@@ -125,8 +125,11 @@ class LightTracer:
         beta = mi.Color3f(le * safe_div(dr.abs(cos_s), pdf_emit_w))
         d_vc = c.mis.light_init(pdf_emit_w, dr.abs(cos_s))
         ray = si_e.spawn_ray(d)
+        active &= c.max_depth_edges >= 2
         si = c.scene.ray_intersect(ray, active)
-        active &= si.is_valid() & (c.max_depth_edges >= 2)
+        if c.stats is not None:
+            c.stats.ray('light', active, si.is_valid())
+        active &= si.is_valid()
         ds0 = direction_sample_at(si_e, ps, si.p, emitter)
         pdf_direct_a = c.emitters.pdf_direct_a(si, ds0, active)
         cos_hit = dr.abs(dr.dot(si.n, ray.d))
@@ -143,14 +146,17 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        ok &= ~c.scene.ray_test(si_e.spawn_ray_to(ds.p), ok)
+        blocked = c.scene.ray_test(si_e.spawn_ray_to(ds.p), ok)
+        if c.stats is not None:
+            c.stats.shadow(ok, blocked)
+        ok &= ~blocked
         pdf_light_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ps)
         pdf_cam_a = sensor_w.x * dr.abs(cos_g)                # We |cos| / d^2
         w = c.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
-        value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * w * c.splat_scale
-        film.put_splat(ds.uv, value, ok)
-        if c.stats is not None:
-            c.stats.count('s1t1', ok)
+        value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * c.splat_scale
+        film.put_splat(ds.uv, value * w, ok)
+        if c.layers is not None:
+            c.layers.add(1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
     # ------------------------------------------------------------------ walk
     def trace(self, sampler, n, film, store):
@@ -203,12 +209,16 @@ class LightTracer:
                 do_splat &= ds.pdf > 0
                 f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat)
                 do_splat &= ok & (dr.max(f) > 0)
-                do_splat &= ~c.scene.ray_test(si.spawn_ray_to(ds.p), do_splat)
+                blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), do_splat)
+                if dr.hint(c.stats is not None, mode='scalar'):
+                    c.stats.shadow(do_splat, blocked)
+                do_splat &= ~blocked
                 pdf_cam_a = sensor_w.x * dr.abs(dr.dot(si.n, ds.d))
                 w = mis.weight_t1(d_vcm, d_vc, pdf_cam_a, pdf_rev_w)
-                film.put_splat(ds.uv, beta * f * sensor_w * (w * c.splat_scale), do_splat)
-                if dr.hint(c.stats is not None, mode='scalar'):
-                    c.stats.count('t1', do_splat)
+                value = beta * f * sensor_w * c.splat_scale
+                film.put_splat(ds.uv, value * w, do_splat)
+                if dr.hint(c.layers is not None, mode='scalar'):
+                    c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, do_splat)
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
@@ -232,6 +242,8 @@ class LightTracer:
 
             ray = si.spawn_ray(wo_world)
             si = c.scene.ray_intersect(ray, active)
+            if dr.hint(c.stats is not None, mode='scalar'):
+                c.stats.ray('light', active, si.is_valid())
             active &= si.is_valid()
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
             depth += 1

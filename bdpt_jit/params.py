@@ -50,6 +50,13 @@ PARAMS = (
           choices=('bdpt', 'pt', 'lt')),
     Param('hide_emitters', bool, False,
           'Hide directly visible emitters, as in Mitsuba\'s `path`.'),
+    Param('strategy_images', bool, False,
+          'Also accumulate one image per (s,t) strategy, weighted and unweighted, into '
+          '`integrator.strategy_images` after a render (path lengths up to 8 one by one, longer '
+          'ones in `other`; nearest-pixel, so with a box filter the weighted layers sum to the image).'),
+    Param('statistics', bool, False,
+          'Count rays traced and zero-contribution rays (extension rays that leave the scene, '
+          'blocked shadow rays), as the paper\'s Table 1; reported in `integrator.last_render_info`.'),
     Param('samples_per_pass', int, None,
           'Samples traced per kernel launch; bounds memory (light-vertex storage grows with it). '
           'Automatic: as many as fit the memory budget, rounded to whole samples per pixel.',

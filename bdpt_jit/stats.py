@@ -1,0 +1,47 @@
+"""Ray statistics of a render, as the seed paper's Table 1 reports them: rays traced and rays
+whose contribution is zero (an extension ray that leaves the scene, a shadow ray that is
+blocked). Traced into the kernels only when the ``statistics`` parameter asks for them."""
+
+import drjit as dr
+import mitsuba as mi
+
+NAMES = (
+    'camera_rays',            # primary and extension rays of camera subpaths
+    'camera_rays_missed',     #   ... that left the scene
+    'light_rays',             # emission and extension rays of light subpaths
+    'light_rays_missed',      #   ... that left the scene
+    'shadow_rays',            # emitter sampling, connections, splats to the camera
+    'shadow_rays_blocked',    #   ... that were occluded
+)
+
+
+class RayStats:
+    def __init__(self):
+        self.buf = dr.zeros(mi.UInt32, len(NAMES))
+        self.totals = {name: 0 for name in NAMES}
+
+    def count(self, name, active):
+        """Add the active lanes to counter ``name`` (pre-reduced within each packet)."""
+        dr.scatter_reduce(dr.ReduceOp.Add, self.buf, mi.UInt32(1),
+                          mi.UInt32(NAMES.index(name)), active)
+
+    def ray(self, kind, active, hit):
+        self.count(f'{kind}_rays', active)
+        self.count(f'{kind}_rays_missed', active & ~hit)
+
+    def shadow(self, active, blocked):
+        self.count('shadow_rays', active)
+        self.count('shadow_rays_blocked', active & blocked)
+
+    def end_pass(self):
+        import numpy as np
+        for name, v in zip(NAMES, np.array(self.buf, dtype=np.uint64)):
+            self.totals[name] += int(v)
+        self.buf = dr.zeros(mi.UInt32, len(NAMES))
+
+    def summary(self):
+        t = dict(self.totals)
+        t['rays'] = t['camera_rays'] + t['light_rays'] + t['shadow_rays']
+        t['zero_contribution_rays'] = (t['camera_rays_missed'] + t['light_rays_missed']
+                                       + t['shadow_rays_blocked'])
+        return t
