@@ -87,3 +87,31 @@ def test_non_square_film_matches_path():
     mine = render_batches(scene, {'type': 'bdpt', 'max_depth': 3}, 32, 8).mean(axis=(1, 2, 3))
     ref = render_batches(scene, {'type': 'path', 'max_depth': 3}, 256, 8, seed0=99).mean(axis=(1, 2, 3))
     assert_same((mine.mean(), mine.std(ddof=1) / np.sqrt(8)), (ref.mean(), ref.std(ddof=1) / np.sqrt(8)), 'non-square film')
+
+
+def test_strategy_layers_sum_to_the_image():
+    scene = mi.load_file(scene_path('paper-fig6.xml'), res=16, max_depth=4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'strategy_images': True})
+    img = np.array(mi.render(scene, integrator=integ, spp=8))[:, :, :3]
+    layers = integ.strategy_images
+    assert set(layers) >= {'s0_t2', 's1_t1', 's2_t2', 's4_t1', 'other'}
+    total = sum(v['weighted'] for v in layers.values())
+    np.testing.assert_allclose(total, img, rtol=1e-4, atol=1e-5 * img.max())
+    # a path of k edges has k+1 strategies: none beyond max_depth was counted
+    assert not layers['other']['weighted'].any()
+    for name, v in layers.items():
+        assert np.all(np.isfinite(v['unweighted'])) and np.all(v['weighted'] <= v['unweighted'] + 1e-6)
+
+
+def test_ray_statistics_are_exact_where_they_can_be():
+    """pt with max_depth 1: one primary ray per sample, nothing else."""
+    scene = cornell(8)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 1, 'technique': 'pt', 'statistics': True})
+    mi.render(scene, integrator=integ, spp=3)
+    r = integ.last_render_info['rays']
+    assert r['camera_rays'] == 8 * 8 * 3 and r['light_rays'] == 0 and r['shadow_rays'] == 0
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 2, 'technique': 'lt', 'statistics': True})
+    mi.render(scene, integrator=integ, spp=2)
+    r = integ.last_render_info['rays']
+    assert r['camera_rays'] == 0 and r['light_rays'] == 8 * 8 * 2       # one emission ray each
+    assert 0 < r['shadow_rays_blocked'] < r['shadow_rays']

@@ -22,7 +22,8 @@ def test_registered_for_xml_and_dict():
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'mis': 'balance', 'technique': 'pt',
                           'rr_depth': 3, 'hide_emitters': True, 'samples_per_pass': 1000})
     assert integ.settings == {'max_depth': 4, 'mis': 'balance', 'technique': 'pt', 'rr_depth': 3,
-                              'hide_emitters': True, 'samples_per_pass': 1000}
+                              'hide_emitters': True, 'samples_per_pass': 1000,
+                              'strategy_images': False, 'statistics': False}
     scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
     assert isinstance(scene.integrator(), bdpt_jit.BDPTIntegrator)
     xml = mi.load_string('<scene version="3.0.0"><integrator type="bdpt"><string name="mis" value="uniform"/>'
