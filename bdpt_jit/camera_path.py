@@ -147,7 +147,7 @@ class CameraTracer:
 
         si = scene.ray_intersect(ray)
         if c.stats is not None:
-            c.stats.ray('camera', mi.Bool(True), si.is_valid())
+            c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
         pdf_cam_w = c.camera.pdf_w(si.p)
