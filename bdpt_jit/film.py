@@ -41,7 +41,7 @@ class FilmAccumulator:
         vals.append(dr.zeros(mi.Float, dr.width(value.x)))
         self.lt.put(uv_in_crop + self.crop_offset, vals, active)
 
-    def develop(self) -> mi.TensorXf:
+    def develop(self, light_scale=1.0) -> mi.TensorXf:
         """Sum of the normalised camera image and the light image, handed to the film so that
         ``film.bitmap()`` and ``mi.render`` both see it. Returns the developed tensor."""
         cam = self.cam.tensor()
@@ -49,7 +49,7 @@ class FilmAccumulator:
         c = self.n_channels
         w = cam[:, :, c - 1:c]
         inv_w = dr.select(w > 0, 1.0 / dr.select(w > 0, w, 1.0), 0.0)
-        rgb = cam[:, :, 0:3] * inv_w + lt[:, :, 0:3]
+        rgb = cam[:, :, 0:3] * inv_w + lt[:, :, 0:3] * light_scale
         parts = [rgb]
         if self.has_alpha:
             parts.append(cam[:, :, 3:4] * inv_w)

@@ -78,6 +78,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.hide_emitters = s['hide_emitters']
         self.samples_per_pass = s['samples_per_pass']
         self.strategy_images = None     # after a render with strategy_images: the layers (dict)
+        self.progress = None            # optional callable(samples_done, samples_total), per pass
         self.last_render_info = {}
 
     # ------------------------------------------------------------------ setup
@@ -146,34 +147,31 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         passes = self.plan_passes(ctx, spp, n_pixels)
         t0 = _time.perf_counter()
         levels_used = 0
+        samples_done, interrupted = 0, False
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(passes):
-            n = spp_pass * pixel_count
-            ctx.n_opaque = dr.opaque(mi.UInt32, n)
-            sampler = sensor.sampler().clone()
-            sampler.set_sample_count(spp_pass)
-            sampler.seed(mi.sample_tea_32(seed, i)[0] if False else (seed * 1000003 + i) & 0xFFFFFFFF, n)
-            store = None
-            if ctx.needs_light_pass:
-                cap = self.light_capacity(ctx)
-                if cap > 0:
-                    store = LightStore(n=n, capacity=cap, record=StoredVertexTangents
-                                       if scene_perturbs_normals(scene) else StoredVertex)
-                    store.allocate()
-                LightTracer(ctx).trace(sampler, n, acc, store)
-                if store is not None:
-                    levels_used = max(levels_used, store.capacity)
-            if ctx.needs_camera_pass:
-                CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
-            dr.eval(acc.cam.tensor(), acc.lt.tensor())
-            if ctx.stats is not None:
-                ctx.stats.end_pass()
-        image = acc.develop()
+            try:
+                self.render_pass(ctx, scene, sensor, acc, seed, i, spp_pass, pixel_start, pixel_count)
+            except KeyboardInterrupt:
+                if samples_done == 0:
+                    raise
+                interrupted = True          # keep what the finished passes rendered
+                break
+            levels_used = max(levels_used, ctx.levels_used)
+            samples_done += spp_pass * pixel_count
+            if self.progress is not None:
+                self.progress(samples_done, spp * n_pixels)
+        # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
+        # traced than that scale assumes (camera samples are normalised per pixel anyway).
+        light_scale = spp * n_pixels / samples_done if samples_done else 1.0
+        image = acc.develop(light_scale)
         dr.eval(image)
         self.strategy_images = ctx.layers.images() if ctx.layers is not None else None
         self.last_render_info = {
             'strategies': ctx.strategies(),
             'passes': len(passes),
             'spp': spp,
+            'samples': samples_done,
+            'interrupted': interrupted,
             'delta_handling': ctx.has_delta,
             'light_pass': ctx.needs_light_pass,
             'camera_pass': ctx.needs_camera_pass,
@@ -184,6 +182,32 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if ctx.stats is not None:
             self.last_render_info['rays'] = ctx.stats.summary()
         return image
+
+    def render_pass(self, ctx, scene, sensor, acc, seed, i, spp_pass, pixel_start, pixel_count):
+        """Pass ``i``: spp_pass samples in each of pixel_count crop pixels from pixel_start."""
+        n = spp_pass * pixel_count
+        ctx.n_opaque = dr.opaque(mi.UInt32, n)
+        ctx.levels_used = 0
+        sampler = sensor.sampler().clone()
+        sampler.set_sample_count(spp_pass)
+        sampler.seed((seed * 1000003 + i * 7919) & 0xFFFFFFFF, n)
+        store = None
+        if ctx.needs_light_pass:
+            cap = self.light_capacity(ctx)
+            if cap > 0:
+                store = LightStore(n=n, capacity=cap, record=StoredVertexTangents
+                                   if scene_perturbs_normals(scene) else StoredVertex)
+                store.allocate()
+            LightTracer(ctx).trace(sampler, n, acc, store)
+            if store is not None:
+                ctx.levels_used = store.capacity
+        if ctx.needs_camera_pass:
+            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
+        dr.eval(acc.cam.tensor(), acc.lt.tensor())
+        if ctx.layers is not None:
+            dr.eval(ctx.layers.buf)
+        if ctx.stats is not None:
+            ctx.stats.end_pass()
 
     def sample(self, *args, **kwargs):
         raise NotImplementedError('bdpt renders whole images: call mi.render(scene) with it')
