@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
-from .endpoints import safe_div
+from .endpoints import AreaKinds, safe_div, sel
 from .roulette import roulette
 
 
@@ -45,11 +45,36 @@ class CameraTracer:
         pdf_y0_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ds)
         pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
                                  c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
-        pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d)
+        pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d, AreaKinds)
         w = c.mis.weight_s0(d_vcm, d_vc, pdf_direct_a, pdf_emit_w)
         if c.layers is not None:
             c.layers.add(0, depth + 1, film_pos, beta * le * (w * c.inv_spp), beta * le * c.inv_spp, hit_em)
         return dr.select(hit_em, beta * le * w, 0.0)
+
+    def strategy_env(self, ray, prev, depth, beta, d_vcm, d_vc, escaped, film_pos=None):
+        """s=0 for infinite emitters: the camera subpath leaves the scene (``depth``: edges
+        including the escaping one; d_vcm, d_vc as before that edge: the environment's
+        'vertex' is a direction, measured per unit solid angle)."""
+        c = self.ctx
+        env = c.scene.environment()
+        if c.hide_emitters:
+            escaped = escaped & (depth > 1)
+        si_env = dr.zeros(mi.SurfaceInteraction3f)
+        si_env.wi = -ray.d
+        si_env.time = ray.time
+        le = env.eval(si_env, escaped)
+        ds = dr.zeros(mi.DirectionSample3f)
+        ds.d = ray.d
+        ds.dist = mi.Float(dr.inf)
+        ds.emitter = mi.EmitterPtr(env)
+        p_sel = c.emitters.pdf_select(mi.EmitterPtr(env))
+        pdf_direct_w = c.scene.pdf_emitter_direction(prev, ds, escaped & (depth > 1))
+        pdf_emit_w = p_sel * c.emitters.pdf_disk * env.pdf_direction(prev, ds, escaped)
+        # seen directly: no other strategy can sample it (light tracing cannot hit the pinhole)
+        w = dr.select(depth == 1, 1.0, c.mis.weight_s0(d_vcm, d_vc, pdf_direct_w, pdf_emit_w))
+        if c.layers is not None:
+            c.layers.add(0, depth + 1, film_pos, beta * le * (w * c.inv_spp), beta * le * c.inv_spp, escaped)
+        return dr.select(escaped, beta * le * w, 0.0)
 
     def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None):
         """s=1: emitter sampling from the camera vertex ``si``."""
@@ -63,10 +88,16 @@ class CameraTracer:
             c.stats.shadow(active, blocked)
         active &= ~blocked
         f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active)
-        pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d)
-        cos_e = dr.abs(dr.dot(ds.n, ds.d))
+        k = c.emitters.kinds(ds.emitter)
+        pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
+        # per kind (endpoints.py): a surface point has a normal; a point light's discrete
+        # density is turned into the solid-angle form mis.weight_s1 takes; infinite emitters
+        # are directions already
+        cos_e = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)), mi.Float(1.0))
+        pdf_direct_w = sel(k.delta_pos, ds.pdf * dr.square(ds.dist), ds.pdf)
         cos_z = dr.abs(dr.dot(si.n, ds.d))
-        w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, ds.pdf, pdf_emit_w, cos_e, cos_z, pdf_rev_w)
+        w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z, pdf_rev_w,
+                            emitter_is_delta=k.delta)
         if c.layers is not None:
             value = beta * f * em_w * c.inv_spp
             c.layers.add(1, depth + 1, film_pos, value * w, value, active)
@@ -148,6 +179,10 @@ class CameraTracer:
         si = scene.ray_intersect(ray)
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
+        L = mi.Color3f(0.0)
+        if c.use_env:
+            L += self.strategy_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
+                                   mi.Float(0), mi.Float(0), ~si.is_valid() & (max_edges >= 1), film_pos)
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
         pdf_cam_w = c.camera.pdf_w(si.p)
@@ -156,7 +191,6 @@ class CameraTracer:
         # from the pinhole, as every other strategy measures it.
         dist2_cam = dr.squared_norm(si.p - c.camera.position)
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
-        L = mi.Color3f(0.0)
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
 
@@ -185,6 +219,9 @@ class CameraTracer:
             si = scene.ray_intersect(ray, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
+            if dr.hint(c.use_env, mode='scalar'):
+                L += self.strategy_env(ray, prev, depth + 1, beta, d_vcm, d_vc,
+                                       active & ~si.is_valid(), film_pos)
             active &= si.is_valid()
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
             depth += 1

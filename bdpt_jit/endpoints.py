@@ -1,9 +1,22 @@
-"""Subpath endpoints: where light subpaths start (emitters) and how camera subpaths are
-weighted, with every density the MIS needs. Mitsuba does not expose the emission densities
-(``Emitter.pdf_position`` raises, and no emitter gives the pdf of the direction ``sample_ray``
-chooses), so they are computed here, per emitter type, in one place.
+"""Subpath endpoints: where light subpaths start (every emitter kind Mitsuba ships) and how
+camera subpaths are weighted, with every density the MIS needs. Mitsuba does not expose the
+emission densities (``Emitter.pdf_position`` raises, and no emitter gives the pdf of the
+direction ``sample_ray`` chooses), so they are computed here, per emitter kind, in one place:
 
-Scope (checked by ``scene_check``): area emitters on any shape, perspective cameras."""
+| kind (flags) | position density | direction density |
+|---|---|---|
+| area (Surface) | its shape's ``pdf_position`` (uniform area) | cos / pi about the normal |
+| point, spot (DeltaPosition) | discrete (1) | uniform sphere; uniform cone within the spot's cutoff |
+| directional (DeltaDirection, Infinite) | 1 / (pi R^2) on a disk facing the light | discrete (1) |
+| constant, envmap (Infinite) | 1 / (pi R^2) on a disk facing the direction | the emitter's ``pdf_direction`` |
+
+R is the radius of the scene's bounding sphere (slightly enlarged). For infinite emitters the
+'vertex' y0 is a direction, so its densities are per unit solid angle and the first edge has
+no distance factor; delta emitters cannot be hit (no s=0) nor sampled by BSDF sampling.
+All selection probabilities are Mitsuba's own (``scene.sample_emitter``, proportional to each
+emitter's ``sampling_weight``)."""
+
+import math
 
 import drjit as dr
 import mitsuba as mi
@@ -16,15 +29,99 @@ def safe_div(a, b):
     return dr.select(b != 0, a / dr.select(b != 0, b, 1.0), 0.0)
 
 
+class Kinds:
+    """Per-lane emitter kind masks. Kinds the scene does not have are the Python constant
+    False, so code for them is not traced."""
+
+    def __init__(self, table, emitter):
+        flags = emitter.flags() if table.mixed else None
+        def has(kind, flag):
+            if not getattr(table, 'has_' + kind):
+                return False
+            if not table.mixed:
+                return True
+            return mi.has_flag(flags, flag)
+        self.area = has('area', mi.EmitterFlags.Surface)
+        self.delta_pos = has('delta_pos', mi.EmitterFlags.DeltaPosition)
+        self.delta_dir = has('delta_dir', mi.EmitterFlags.DeltaDirection)
+        self.infinite = has('infinite', mi.EmitterFlags.Infinite)   # directional included
+        self.env = self.infinite if self.delta_dir is False else (
+            False if self.delta_dir is True else self.infinite & ~self.delta_dir)
+        if self.delta_pos is False or self.delta_dir is False:
+            self.delta = self.delta_dir if self.delta_pos is False else self.delta_pos
+        else:
+            self.delta = self.delta_pos | self.delta_dir
+
+
+class AreaKinds:
+    """Kinds of an emitter that a camera ray hit: always an area emitter."""
+    area, delta_pos, delta_dir, infinite, env, delta = True, False, False, False, False, False
+
+
+def neg(mask):
+    """Logical not of a per-lane mask or a Python bool (``~True`` is -2 in Python)."""
+    if mask is True or mask is False:
+        return not mask
+    return ~mask
+
+
+def sel(mask, a, b):
+    """dr.select that also takes a Python bool mask (kinds absent from the scene)."""
+    if mask is True:
+        return a
+    if mask is False:
+        return b
+    return dr.select(mask, a, b)
+
+
 class EmitterTable:
-    """Emitter choice (Mitsuba's own ``scene.sample_emitter``, proportional to each
-    emitter's ``sampling_weight``) and the emission densities of area emitters."""
+    """Emitter choice and the emission densities of every emitter kind."""
 
     def __init__(self, scene: mi.Scene):
         self.scene = scene
-        weights = [float(e.sampling_weight()) for e in scene.emitters()]
-        self.total_weight = sum(weights)
-        self.count = len(weights)
+        emitters = scene.emitters()
+        weights = [float(e.sampling_weight()) for e in emitters]
+        self.total_weight = sum(weights) or 1.0
+        self.count = len(emitters)
+        kinds = set()
+        for e in emitters:
+            f = e.flags()
+            if mi.has_flag(f, mi.EmitterFlags.Surface):
+                kinds.add('area')
+            if mi.has_flag(f, mi.EmitterFlags.DeltaPosition):
+                kinds.add('delta_pos')
+            if mi.has_flag(f, mi.EmitterFlags.DeltaDirection):
+                kinds.add('delta_dir')
+            if mi.has_flag(f, mi.EmitterFlags.Infinite):
+                kinds.add('infinite')
+        self.has_area = 'area' in kinds
+        self.has_delta_pos = 'delta_pos' in kinds
+        self.has_delta_dir = 'delta_dir' in kinds
+        self.has_infinite = 'infinite' in kinds
+        self.mixed = len(kinds) > 1 or ('infinite' in kinds and 'delta_dir' in kinds)
+        # the disk of infinite emitters: covers the scene's bounding sphere
+        bs = scene.bbox().bounding_sphere()
+        r = float(bs.radius) if math.isfinite(float(bs.radius)) and float(bs.radius) > 0 else 1.0
+        self.center = mi.Point3f(bs.center)
+        self.radius = r * 1.01 + 1e-4
+        self.pdf_disk = 1.0 / (math.pi * self.radius ** 2)
+        # spot cones, by the emitter's registry id (points: the whole sphere, cos = -1)
+        ids = [int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0]) for e in emitters]
+        size = max(ids + [0]) + 1
+        cos_cut, axis = [-1.0] * size, [[0.0, 0.0, 1.0] for _ in range(size)]
+        for e, i in zip(emitters, ids):
+            if e.class_name() == 'SpotLight':
+                params = mi.traverse(e)
+                cos_cut[i] = math.cos(math.radians(float(dr.ravel(params['cutoff_angle']).numpy()[0])))
+                import numpy as np
+                m = np.array(e.world_transform().matrix).reshape(4, 4)
+                a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
+                axis[i] = [float(a[0]), float(a[1]), float(a[2])]
+        self.cone_cos = mi.Float(cos_cut)
+        self.cone_axis = mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
+
+    def kinds(self, emitter):
+        return Kinds(self, emitter)
 
     def pdf_select(self, emitter):
         """Probability of choosing ``emitter`` (an EmitterPtr)."""
@@ -32,46 +129,154 @@ class EmitterTable:
 
     @staticmethod
     def pdf_pos_a(emitter, ps):
-        """Density per unit area of the emission position (Mitsuba's area emitters sample
-        their shape's surface uniformly; spatially varying radiance is refused earlier)."""
+        """Area emitters: density per unit area of the emission position (uniform over the
+        shape; spatially varying radiance is refused earlier)."""
         return emitter.get_shape().pdf_position(ps)
 
     @staticmethod
     def pdf_dir_w(cos_e):
-        """Density per unit solid angle of the emitted direction: cosine-weighted around the
-        emitter's (shading) normal, as Mitsuba's area emitter samples it."""
+        """Area emitters: cosine-weighted about the (shading) normal, as Mitsuba samples it."""
         return dr.abs(cos_e) * INV_PI
 
+    def cone(self, emitter):
+        idx = dr.reinterpret_array(mi.UInt32, emitter)
+        return dr.gather(mi.Float, self.cone_cos, idx), dr.gather(mi.Vector3f, self.cone_axis, idx)
+
+    def cone_pdf_w(self, emitter, d_out):
+        """Point and spot lights: density of the emitted direction ``d_out``."""
+        cos_cut, axis = self.cone(emitter)
+        inside = dr.dot(axis, d_out) >= cos_cut
+        return dr.select(inside, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), 0.0)
+
+    # ------------------------------------------------------------------ light subpath start
     def sample_emission(self, time, u_sel, u_pos, u_dir, active):
-        """Start a light subpath. Returns (si_e, emitter, ray direction, beta after emission,
-        Le * cos / (p_sel p_pos) for the s=1,t=1 splat is built by the caller from
-        ``le_over_pdf_a``), and the densities."""
+        """Start a light subpath: choose an emitter, a position and a direction. Returns an
+        Emission with the ray, the throughput after emission and the densities."""
         idx, _, _ = self.scene.sample_emitter(u_sel, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), idx, active)
-        ps, _ = emitter.sample_position(time, u_pos, active)
+        k = self.kinds(emitter)
+        e = Emission()
+        e.emitter, e.kinds = emitter, k
         p_sel = self.pdf_select(emitter)
-        pdf_pos_a = self.pdf_pos_a(emitter, ps)
-        pdf_light_a = p_sel * pdf_pos_a                          # y0's density, s=1,t=1
-        local = mi.warp.square_to_cosine_hemisphere(u_dir)
+        e.p_sel = p_sel
+        finite = neg(k.infinite)
+        # ---- position (area, point, spot)
+        ps, _ = emitter.sample_position(time, u_pos, active & finite)
+        e.ps = ps
         si_e = mi.SurfaceInteraction3f(ps, dr.zeros(mi.Color0f))
-        si_e.wi = local                                          # area emitters read si.wi
-        le = emitter.eval(si_e, active)
-        d = si_e.to_world(local)
-        cos_s = local.z                                          # shading cosine (emission)
-        pdf_emit_w = pdf_light_a * self.pdf_dir_w(cos_s)         # y0 and its direction
-        return ps, si_e, emitter, d, le, cos_s, p_sel, pdf_light_a, pdf_emit_w
+        e.si_e = si_e
+        value = mi.Color3f(0.0)
+        p_pos = mi.Float(1.0)
+        p_dir = mi.Float(0.0)
+        d = mi.Vector3f(0, 0, 1)
+        origin = mi.Point3f(ps.p)
+        cos_e = mi.Float(1.0)
+        n_e = mi.Vector3f(ps.n)
+        if k.area is not False:
+            local = mi.warp.square_to_cosine_hemisphere(u_dir)
+            si_e.wi = local                                  # area emitters read si.wi
+            le = emitter.eval(si_e, active & k.area)
+            d_area = si_e.to_world(local)
+            value = sel(k.area, le * local.z, value)
+            p_pos = sel(k.area, self.pdf_pos_a(emitter, ps), p_pos)
+            p_dir = sel(k.area, self.pdf_dir_w(local.z), p_dir)
+            d = sel(k.area, d_area, d)
+            cos_e = sel(k.area, dr.abs(dr.dot(ps.n, d_area)), cos_e)
+        if k.delta_pos is not False:
+            cos_cut, axis = self.cone(emitter)
+            d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u_dir, cos_cut))
+            it = dr.zeros(mi.Interaction3f)
+            it.p = ps.p + d_cone                             # at distance 1: weight = intensity
+            it.time = time
+            _, intensity = emitter.sample_direction(it, u_dir, active & k.delta_pos)
+            value = sel(k.delta_pos, intensity, value)
+            p_dir = sel(k.delta_pos, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), p_dir)
+            d = sel(k.delta_pos, d_cone, d)
+            n_e = sel(k.delta_pos, d_cone, n_e)
+        if k.infinite is not False:
+            it = dr.zeros(mi.Interaction3f)
+            it.p = self.center
+            it.time = time
+            ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & k.infinite)
+            to_light = ds_inf.d                              # from the scene towards the emitter
+            disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
+            o_inf = self.center + to_light * self.radius + mi.Frame3f(to_light).to_world(mi.Vector3f(disk.x, disk.y, 0))
+            value = sel(k.infinite, w_inf * ds_inf.pdf, value)          # radiance (irradiance if delta)
+            p_pos = sel(k.infinite, mi.Float(self.pdf_disk), p_pos)
+            p_dir = sel(k.infinite, ds_inf.pdf, p_dir)                   # 1 for directional
+            d = sel(k.infinite, -to_light, d)
+            origin = sel(k.infinite, o_inf, origin)
+            n_e = sel(k.infinite, -to_light, n_e)
+        e.d, e.origin, e.n_e, e.cos_e = d, origin, n_e, cos_e
+        e.pdf_emit_w = p_sel * p_pos * p_dir
+        e.pdf_light_a = p_sel * p_pos                        # y0's density (s=1, t=1)
+        e.beta = mi.Color3f(value * safe_div(1.0, e.pdf_emit_w))
+        ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
+        e.active = ok
+        if k.area is True:
+            e.ray = si_e.spawn_ray(d)
+        elif k.area is False:
+            e.ray = mi.Ray3f(origin, d, time)
+        else:
+            r_area = si_e.spawn_ray(d)
+            e.ray = mi.Ray3f(dr.select(k.area, r_area.o, origin), d, time)
+        return e
 
+    def pdf_direct_first_hit(self, e, si1, active):
+        """Density of emitter sampling choosing y0 when seen from the first hit y1: per unit
+        area at y0 (area), per unit solid angle (environment), discrete (delta emitters)."""
+        k = e.kinds
+        out = e.p_sel * 1.0
+        if k.area is not False or k.env is not False:
+            ds = mi.DirectionSample3f(e.ps)
+            to_y0 = e.origin - si1.p
+            dist = dr.norm(to_y0)
+            ds.d = sel(k.infinite, -e.d, to_y0 / dr.maximum(dist, 1e-30))
+            ds.dist = dist
+            ds.n = e.n_e
+            ds.emitter = e.emitter
+            ds.delta = mi.Bool(False)
+            pdf_w = self.scene.pdf_emitter_direction(si1, ds, active & neg(k.delta))
+            area = pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(dist))
+            out = sel(k.area, area, out)
+            out = sel(k.env, pdf_w, out)
+        return out
+
+    # ------------------------------------------------------------------ camera side
     def pdf_direct_a(self, ref_it, ds, active):
-        """Density per unit area at the emitter point ``ds`` of emitter sampling
-        (``sample_emitter_direction``) from ``ref_it``, emitter choice included."""
+        """Area emitters: density per unit area at the emitter point ``ds`` of emitter sampling
+        from ``ref_it``, emitter choice included."""
         pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active)
-        return pdf_w * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-30)
+        return pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist))
 
-    def pdf_emit_w_at(self, emitter, ds, d_out):
-        """Emission density (choice, position, direction ``d_out``) of a point ``ds`` on
-        ``emitter``: what a light subpath would have used to start there."""
-        return (self.pdf_select(emitter) * self.pdf_pos_a(emitter, ds)
-                * self.pdf_dir_w(dr.dot(ds.n, d_out)))
+    def pdf_emit_w_at(self, emitter, ds, d_out, k=None):
+        """Emission density (choice, position, direction ``d_out`` leaving the emitter) of the
+        emitter point / direction ``ds``: what a light subpath would have used to start there."""
+        if k is None:
+            k = self.kinds(emitter)
+        p_sel = self.pdf_select(emitter)
+        out = mi.Float(0.0)
+        if k.area is not False:
+            out = sel(k.area, self.pdf_pos_a(emitter, ds) * self.pdf_dir_w(dr.dot(ds.n, d_out)), out)
+        if k.delta_pos is not False:
+            out = sel(k.delta_pos, self.cone_pdf_w(emitter, d_out), out)
+        if k.delta_dir is not False:
+            out = sel(k.delta_dir, mi.Float(self.pdf_disk), out)
+        if k.env is not False:
+            # (mi.DirectionSample3f(ds) would take the PositionSample3f overload and leave
+            # d, dist and emitter empty: build it field by field)
+            ds_env = dr.zeros(mi.DirectionSample3f, dr.width(d_out))
+            ds_env.p, ds_env.n, ds_env.time, ds_env.pdf = ds.p, ds.n, ds.time, ds.pdf
+            ds_env.d, ds_env.dist, ds_env.emitter = -d_out, ds.dist, emitter   # towards the emitter
+            it = dr.zeros(mi.Interaction3f, dr.width(d_out))
+            out = sel(k.env, self.pdf_disk * emitter.pdf_direction(it, ds_env, k.env), out)
+        return p_sel * out
+
+
+class Emission:
+    """A light subpath's start (see EmitterTable.sample_emission)."""
+    emitter = kinds = p_sel = ps = si_e = d = origin = n_e = cos_e = None
+    pdf_emit_w = pdf_light_a = beta = active = ray = None
 
 
 def direction_sample_at(si_e: mi.SurfaceInteraction3f, ps: mi.PositionSample3f, ref_p, emitter):
@@ -82,6 +287,7 @@ def direction_sample_at(si_e: mi.SurfaceInteraction3f, ps: mi.PositionSample3f, 
     ds.d = d / dr.maximum(dist, 1e-30)
     ds.dist = dist
     ds.emitter = emitter
+    ds.delta = mi.Bool(False)
     return ds
 
 

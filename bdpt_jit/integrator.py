@@ -44,12 +44,14 @@ class Context:
 
     @property
     def needs_camera_pass(self):
-        return self.use_s0 or self.use_s1 or self.use_connect
+        return self.use_s0 or self.use_env or self.use_s1 or self.use_connect
 
     def strategies(self):
         out = []
         if self.use_s0:
             out.append('s=0 (camera subpath hits an emitter)')
+        if self.use_env:
+            out.append('s=0 (camera subpath leaves the scene: environment)')
         if self.use_s1:
             out.append('s=1 (emitter sampling)')
         if self.splat_y0:
@@ -88,16 +90,18 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         edges = UNBOUNDED if unbounded else self.max_depth
         tech = self.technique
         has_emitters = len(scene.emitters()) > 0
+        has_area = any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) for e in scene.emitters())
         film = sensor.film()
         return Context(
             scene=scene, sensor=sensor, camera=Camera(sensor), emitters=EmitterTable(scene),
             mis=MIS(self.mis_kind, tech), time=sensor.shutter_open(),
             max_depth_edges=edges, unbounded=unbounded, rr_depth=self.rr_depth,
             hide_emitters=self.hide_emitters, has_delta=scene_has_delta_bsdf(scene),
-            use_s0=has_emitters and tech in ('bdpt', 'pt') and edges >= 1,
+            use_s0=has_area and tech in ('bdpt', 'pt') and edges >= 1,
+            use_env=scene.environment() is not None and tech in ('bdpt', 'pt') and edges >= 1,
             use_s1=has_emitters and tech in ('bdpt', 'pt') and edges >= 2,
             use_connect=has_emitters and tech == 'bdpt' and edges >= 3,
-            splat_y0=has_emitters and tech in ('bdpt', 'lt') and edges >= 1 and not self.hide_emitters,
+            splat_y0=has_area and tech in ('bdpt', 'lt') and edges >= 1 and not self.hide_emitters,
             splat_t1=has_emitters and tech in ('bdpt', 'lt') and edges >= 2,
         )
 

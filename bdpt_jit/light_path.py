@@ -110,36 +110,33 @@ class LightTracer:
     def start(self, sampler, n, film):
         c = self.ctx
         active = dr.full(mi.Bool, True, n)
-        time = c.time
-        (ps, si_e, emitter, d, le, cos_s, p_sel, pdf_light_a,
-         pdf_emit_w) = c.emitters.sample_emission(time, sampler.next_1d(), sampler.next_2d(),
-                                                   sampler.next_2d(), active)
-        active &= (pdf_emit_w > 0) & (dr.max(le) > 0)
+        e = c.emitters.sample_emission(c.time, sampler.next_1d(), sampler.next_2d(),
+                                       sampler.next_2d(), active)
+        active = e.active
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
-        if c.splat_y0:
-            self.splat_emitter_vertex(sampler, si_e, ps, emitter, film, active)
-        else:
-            sampler.next_2d()                                 # keep sample dimensions aligned
+        u_cam = sampler.next_2d()
+        if c.splat_y0 and e.kinds.area is not False:      # only surfaces can be seen directly
+            self.splat_emitter_vertex(u_cam, e, film, active & e.kinds.area)
 
-        beta = mi.Color3f(le * safe_div(dr.abs(cos_s), pdf_emit_w))
-        d_vc = c.mis.light_init(pdf_emit_w, dr.abs(cos_s))
-        ray = si_e.spawn_ray(d)
+        d_vc = c.mis.light_init(e.pdf_emit_w, e.cos_e, e.kinds.delta)
         active &= c.max_depth_edges >= 2
-        si = c.scene.ray_intersect(ray, active)
+        si = c.scene.ray_intersect(e.ray, active)
         if c.stats is not None:
             c.stats.ray('light', active, si.is_valid())
         active &= si.is_valid()
-        ds0 = direction_sample_at(si_e, ps, si.p, emitter)
-        pdf_direct_a = c.emitters.pdf_direct_a(si, ds0, active)
-        cos_hit = dr.abs(dr.dot(si.n, ray.d))
-        d_vcm, d_vc = c.mis.light_first_hit(d_vc, pdf_emit_w, pdf_direct_a, dr.square(si.t), cos_hit)
+        pdf_direct = c.emitters.pdf_direct_first_hit(e, si, active)
+        cos_hit = dr.abs(dr.dot(si.n, e.ray.d))
+        dist2 = dr.square(si.t) if e.kinds.infinite is False else \
+            dr.select(e.kinds.infinite, 1.0, dr.square(si.t))  # infinite: solid-angle measure
+        d_vcm, d_vc = c.mis.light_first_hit(d_vc, e.pdf_emit_w, pdf_direct, dist2, cos_hit)
         depth = dr.full(mi.UInt32, 1, n)
-        return active, si, beta, d_vcm, d_vc, depth
+        return active, si, e.beta, d_vcm, d_vc, depth
 
-    def splat_emitter_vertex(self, sampler, si_e, ps, emitter, film, active):
+    def splat_emitter_vertex(self, u, e, film, active):
         c = self.ctx
-        ds, sensor_w = c.sensor.sample_direction(si_e, sampler.next_2d(), active)
+        si_e, ps, emitter = e.si_e, e.ps, e.emitter
+        ds, sensor_w = c.sensor.sample_direction(si_e, u, active)
         ok = active & (ds.pdf > 0)
         cos_g = dr.dot(ps.n, ds.d)                            # emitter normal towards camera
         si_to_cam = mi.SurfaceInteraction3f(si_e)
@@ -150,7 +147,7 @@ class LightTracer:
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
-        pdf_light_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ps)
+        pdf_light_a = e.pdf_light_a
         pdf_cam_a = sensor_w.x * dr.abs(cos_g)                # We |cos| / d^2
         w = c.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
         value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * c.splat_scale

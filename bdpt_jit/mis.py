@@ -68,15 +68,20 @@ class MIS:
         d_vc = 0.0 * pdf_cam_w                              # [eq. 22] no strategy behind z0
         return d_vcm, d_vc
 
-    def light_init(self, pdf_emit_w, cos_e):
+    def light_init(self, pdf_emit_w, cos_e, is_delta=False):
         """d_vc at the light vertex y0 (emission density per unit solid angle, position and
-        emitter choice included; cos_e: cosine of the emitted direction). d_vcm needs the
-        emitter-sampling density seen from y1 and is set by ``light_first_hit``."""
-        return self.h(cos_e / pdf_emit_w)                   # [eq. 22] vcm_1: strategy s=0 behind y0
+        emitter choice included; cos_e: cosine of the emitted direction at y0, 1 for infinite
+        emitters). d_vcm needs the emitter-sampling density seen from y1 and is set by
+        ``light_first_hit``. A delta emitter cannot be hit: no strategy s=0 behind it."""
+        d_vc = self.h(cos_e / pdf_emit_w)                   # [eq. 22] vcm_1: strategy s=0 behind y0
+        if is_delta is False:
+            return d_vc
+        return dr.select(is_delta, 0.0, d_vc)              # [eq. 20] p_0 = 0 for delta emitters
 
     def light_first_hit(self, d_vc, pdf_emit_w, pdf_direct_a, dist2, cos_hit):
-        """(d_vcm, d_vc) at the light subpath's first hit y1. ``pdf_direct_a``: density per unit
-        area of emitter sampling choosing y0 from y1."""
+        """(d_vcm, d_vc) at the light subpath's first hit y1. ``pdf_direct_a``: density of
+        emitter sampling choosing y0 from y1 (per unit area; per unit solid angle for infinite
+        emitters, whose first edge then takes ``dist2 = 1``; discrete for delta emitters)."""
         d_vcm = self.h(pdf_direct_a / pdf_emit_w)           # [eq. 22] vc_1 with p<- of s=1
         return self.on_hit(d_vcm, d_vc, dist2, cos_hit)
 
@@ -118,13 +123,16 @@ class MIS:
     def weight_s1(self, d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z,
                   pdf_rev_w, emitter_is_delta=False):
         """Emitter sampling (s=1, t>=2) at camera vertex z. ``pdf_bsdf_w``: z's BSDF density
-        towards the emitter point; ``pdf_direct_w``: emitter sampling density (solid angle at
-        z); ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``,
-        ``cos_z``: |cos| at the emitter point and at z; ``pdf_rev_w``: z's BSDF density of
-        its incoming direction given the emitter direction."""
+        towards the emitter point; ``pdf_direct_w``: emitter sampling density per unit solid
+        angle at z (for delta-position emitters their discrete density times d^2);
+        ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``, ``cos_z``:
+        |cos| at the emitter point (1 for point and infinite emitters) and at z; ``pdf_rev_w``:
+        z's BSDF density of its incoming direction given the emitter direction."""
         if self.technique == 'lt':
             return 0.0 * d_vcm
-        w_light = 0.0 if emitter_is_delta else self.h(pdf_bsdf_w / pdf_direct_w)    # [eq. 20] strategy s=0
+        w_light = self.h(pdf_bsdf_w / pdf_direct_w)                               # [eq. 20] strategy s=0
+        if emitter_is_delta is not False:
+            w_light = dr.select(emitter_is_delta, 0.0, w_light)                    # [eq. 20] p_0 = 0
         if self.technique == 'pt':
             return 1.0 / (w_light + 1.0)                    # [eq. 20] w_camera = 0
         w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22]

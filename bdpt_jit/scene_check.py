@@ -4,7 +4,7 @@ that scope is refused with an error naming the plugin, never rendered wrongly.""
 import mitsuba as mi
 
 SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
-SUPPORTED_EMITTERS = ('area',)
+SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap')
 SUPPORTED_SENSORS = ('perspective',)
 
 
@@ -24,7 +24,8 @@ def check_variant():
 PLUGIN_NAMES = {
     'AreaLight': 'area', 'PointLight': 'point', 'SpotLight': 'spot', 'DirectionalEmitter': 'directional',
     'ConstantBackgroundEmitter': 'constant', 'EnvironmentMapEmitter': 'envmap', 'SunSkyEmitter': 'sunsky',
-    'ProjectiveLight': 'projector', 'DirectionalArea': 'directionalarea',
+    'ProjectiveLight': 'projector', 'Projector': 'projector', 'DirectionalArea': 'directionalarea',
+    'SunskyEmitter': 'sunsky',
     'PerspectiveCamera': 'perspective', 'ThinLensCamera': 'thinlens', 'OrthographicCamera': 'orthographic',
     'TelecentricLensCamera': 'telecentric', 'RadianceMeter': 'radiancemeter', 'IrradianceMeter': 'irradiancemeter',
     'DistantSensor': 'distant', 'Batch': 'batch',
@@ -48,7 +49,7 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
         e_name = _plugin_name(em)
         if e_name not in SUPPORTED_EMITTERS:
             raise UnsupportedSceneError(
-                f"bdpt: emitter plugin '{e_name}' is not supported yet (supported: area)")
+                f"bdpt: emitter plugin '{e_name}' is not supported yet (supported: {', '.join(SUPPORTED_EMITTERS)})")
         keys = set(mi.traverse(em).keys())
         if any(k.startswith('radiance.') and k != 'radiance.value' for k in keys):
             raise UnsupportedSceneError(

@@ -55,10 +55,9 @@ def test_bad_parameters_name_the_parameter(params, needle):
 
 
 @pytest.mark.parametrize('emitter,name', [
-    ({'type': 'point', 'position': [0, 0.5, 0]}, 'point'),
-    ({'type': 'constant'}, 'constant'),
-    ({'type': 'directional', 'direction': [0, -1, 0]}, 'directional'),
-    ({'type': 'spot', 'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0.9, 0], target=[0, 0, 0], up=[0, 0, 1])}, 'spot'),
+    ({'type': 'projector'}, 'projector'),
+    ({'type': 'sunsky'}, 'sunsky'),
+    ({'type': 'rectangle', 'emitter': {'type': 'directionalarea'}}, 'directionalarea'),
 ])
 def test_unsupported_emitters_are_refused_by_name(emitter, name):
     d = mi.cornell_box()
