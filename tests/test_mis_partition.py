@@ -7,7 +7,12 @@ full-path density p_s of every strategy as the product of its per-vertex area de
 (Veach's thesis, eq. 10.9) and the weight h(p_s) / sum_j h(p_j) over the strategies the
 technique allows and the delta vertices do not forbid. The recursive weights, obtained by
 walking each subpath through mis.py exactly as the kernels do, must equal it (relative 1e-5),
-sum to 1 over the strategies, and be finite and in [0, 1]."""
+sum to 1 over the strategies, and be finite and in [0, 1].
+
+Paths start on each emitter kind (endpoints.py): area (a surface point), delta position
+(point/spot: discrete position, no s=0 and no s=1,t=1), delta direction (directional: a
+discrete direction, its first edge from a disk, per unit projected area) and environment
+(constant/envmap: a direction per unit solid angle, first edge from a disk)."""
 
 import drjit as dr
 import mitsuba as mi
@@ -19,7 +24,10 @@ from bdpt_jit.mis import MIS
 M = 512   # random paths per length
 
 
-def random_paths(rng, k, delta_prob):
+KINDS = ('area', 'delta_pos', 'delta_dir', 'env')
+
+
+def random_paths(rng, k, delta_prob, emitter='area'):
     # vertex attributes, index 0..k
     d2 = 10.0 ** rng.uniform(-3, 2, size=(M, k))         # edge i: (x_i, x_{i+1})
     cosA = rng.uniform(0.01, 1.0, size=(M, k))            # at x_i towards x_{i+1}
@@ -35,12 +43,18 @@ def random_paths(rng, k, delta_prob):
     delta[:, k] = False
     pL = np.where(delta, 1.0, pL)                          # discrete lobe: same both ways
     pE = np.where(delta, 1.0, pE)
+    pA_light0 = 10.0 ** rng.uniform(-2, 2, size=M)
+    p_direct_a = 10.0 ** rng.uniform(-2, 2, size=M)
+    if emitter in ('delta_pos', 'delta_dir'):
+        p_direct_a = pA_light0      # emitter sampling of a delta emitter: its choice probability
     return dict(
         k=k, d2=d2, cosA=cosA, cosB=cosB, pL=pL, pE=pE, delta=delta,
-        pA_light0=10.0 ** rng.uniform(-2, 2, size=M),      # choice x position density of x_0
-        p_direct_a=10.0 ** rng.uniform(-2, 2, size=M),     # emitter sampling of x_0 from x_1
+        pA_light0=pA_light0,                               # choice x position density of x_0
+        p_direct_a=p_direct_a,                             # emitter sampling of x_0 from x_1
         pdir_e=rng.uniform(0.01, 1.0, size=M) / np.pi,     # emitted direction
         p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
+        p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
+        emitter=emitter,
     )
 
 
@@ -49,6 +63,10 @@ def allowed(technique, k, s, P):
     t = k + 1 - s
     if t < 1:
         return np.zeros(M, bool)
+    if P['emitter'] != 'area' and s == 1 and t == 1:
+        return np.zeros(M, bool)           # only a surface emitter can be seen by the camera
+    if P['emitter'] in ('delta_pos', 'delta_dir') and s == 0:
+        return np.zeros(M, bool)           # a delta emitter cannot be hit
     if technique == 'pt' and not (s == 0 or (s == 1 and t >= 2)):
         return np.zeros(M, bool)
     if technique == 'lt' and t != 1:
@@ -68,16 +86,28 @@ def brute_force(kind, technique, P):
     for s in range(k + 1):
         t = k + 1 - s
         p = np.ones(M)
+        ek = P['emitter']
+        infinite = ek in ('delta_dir', 'env')
         for i in range(s):                                  # light-side vertices
             if i == 0:
-                p = p * (P['p_direct_a'] if (s == 1 and t >= 2) else P['pA_light0'])
+                if ek == 'env':                             # a direction, per unit solid angle
+                    p = p * (P['p_direct_a'] if (s == 1 and t >= 2) else P['pA_light0'] * P['pdir_e'])
+                else:
+                    p = p * (P['p_direct_a'] if (s == 1 and t >= 2) else P['pA_light0'])
             elif i == 1:
-                p = p * P['pdir_e'] * cosB[:, 0] / d2[:, 0]
+                if ek == 'env':
+                    p = p * P['p_disk'] * cosB[:, 0]
+                elif ek == 'delta_dir':
+                    p = p * P['p_disk'] * cosB[:, 0]
+                else:
+                    p = p * P['pdir_e'] * cosB[:, 0] / d2[:, 0]
             else:
                 p = p * pL[:, i - 1] * cosB[:, i - 1] / d2[:, i - 1]
         for i in range(s, k):                               # camera-side vertices (x_k: pinhole, 1)
             if i == k - 1:
                 p = p * P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]
+            elif i == 0 and infinite:                       # the camera samples a direction
+                p = p * pE[:, 1]
             else:
                 p = p * pE[:, i + 1] * cosA[:, i] / d2[:, i]
         dens.append(np.where(allowed(technique, k, s, P), p, 0.0))
@@ -96,14 +126,24 @@ def recursive(kind, technique, P):
     mis = MIS(kind, technique)
     F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
     B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
-    d2, cosA, cosB, pL, pE, delta = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
-    pdf_emit_w = F(P['pA_light0'] * P['pdir_e'])
+    d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
+    ek = P['emitter']
+    infinite = ek in ('delta_dir', 'env')
+    delta = ek in ('delta_pos', 'delta_dir')
+    if ek == 'area' or ek == 'delta_pos':
+        pdf_emit_w = F(P['pA_light0'] * P['pdir_e'])
+    elif ek == 'delta_dir':
+        pdf_emit_w = F(P['pA_light0'] * P['p_disk'])         # discrete direction, disk position
+    else:
+        pdf_emit_w = F(P['pA_light0'] * P['pdir_e'] * P['p_disk'])
+    cos_e0 = np.ones(M) if infinite or ek == 'delta_pos' else cosA[:, 0]
 
     def light_state(last):                                   # at x_last (last >= 1)
-        d_vc = mis.light_init(pdf_emit_w, F(cosA[:, 0]))
-        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(P['p_direct_a']), F(d2[:, 0]), F(cosB[:, 0]))
+        d_vc = mis.light_init(pdf_emit_w, F(cos_e0), B(np.full(M, delta)))
+        d2_0 = np.ones(M) if infinite else d2[:, 0]
+        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(P['p_direct_a']), F(d2_0), F(cosB[:, 0]))
         for i in range(1, last):
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta[:, i]))
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
         return d_vcm, d_vc
 
@@ -111,8 +151,9 @@ def recursive(kind, technique, P):
         d_vcm, d_vc = mis.camera_init(F(P['p_cam_w']))
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, k - 1]), F(cosA[:, k - 1]))
         for i in range(k - 1, last, -1):
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta[:, i]))
-            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
+            if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
+                d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
         return d_vcm, d_vc
 
     out = []
@@ -120,15 +161,25 @@ def recursive(kind, technique, P):
         t = k + 1 - s
         if s == 0:
             c_vcm, c_vc = camera_state(0)
-            pdf_direct_a = P['pA_light0'] if k == 1 else P['p_direct_a']
-            w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w)
+            if ek == 'env':
+                w = mis.weight_s0(c_vcm, c_vc, F(P['p_direct_a']), pdf_emit_w) if k > 1 else F(np.ones(M))
+            elif delta:
+                w = F(np.zeros(M))
+            else:
+                pdf_direct_a = P['pA_light0'] if k == 1 else P['p_direct_a']
+                w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w)
         elif s == 1 and t == 1:
             w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0]), F(P['pA_light0']))
         elif s == 1:
             c_vcm, c_vc = camera_state(1)
-            pdf_direct_w = P['p_direct_a'] * d2[:, 0] / cosA[:, 0]
+            if ek == 'area':
+                pdf_direct_w, cos_e = P['p_direct_a'] * d2[:, 0] / cosA[:, 0], cosA[:, 0]
+            elif ek == 'delta_pos':
+                pdf_direct_w, cos_e = P['p_direct_a'] * d2[:, 0], np.ones(M)
+            else:
+                pdf_direct_w, cos_e = P['p_direct_a'], np.ones(M)
             w = mis.weight_s1(c_vcm, c_vc, F(pE[:, 1]), F(pdf_direct_w), pdf_emit_w,
-                              F(cosA[:, 0]), F(cosB[:, 0]), F(pL[:, 1]))
+                              F(cos_e), F(cosB[:, 0]), F(pL[:, 1]), emitter_is_delta=B(np.full(M, delta)))
         elif t == 1:
             l_vcm, l_vc = light_state(k - 1)
             w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]), F(pE[:, k - 1]))
@@ -145,12 +196,13 @@ def recursive(kind, technique, P):
     return np.array(out)
 
 
+@pytest.mark.parametrize('emitter', KINDS)
 @pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', list(range(1, 11)))
-def test_weights_partition_of_unity(k, kind, technique):
-    rng = np.random.default_rng(1000 * k + hash((kind, technique)) % 997)
-    P = random_paths(rng, k, delta_prob=0.3)
+def test_weights_partition_of_unity(k, kind, technique, emitter):
+    rng = np.random.default_rng(1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
+    P = random_paths(rng, k, delta_prob=0.3, emitter=emitter)
     w_rec = recursive(kind, technique, P)
     w_ref = brute_force(kind, technique, P)
     assert np.all(np.isfinite(w_rec))
