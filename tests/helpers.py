@@ -100,3 +100,24 @@ def agreement(a, b, alpha=0.01, mask=None):
 
 def scene_path(name):
     return os.path.join(SCENES, name)
+
+
+def no_delta_mask(scene):
+    """Pixels whose whole footprint (8x8 sub-pixel probes, dilated by one pixel) sees only
+    surfaces without a delta lobe, and no environment: where light tracing (ptracer, lt) can
+    render every path."""
+    sensor = scene.sensors()[0]
+    film = sensor.film()
+    w, h = film.crop_size()
+    g = 8
+    iy, ix, sy, sx = np.meshgrid(np.arange(h), np.arange(w), np.arange(g), np.arange(g), indexing='ij')
+    u = (ix + (sx + 0.5) / g) / w
+    v = (iy + (sy + 0.5) / g) / h
+    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u.ravel(), v.ravel()), mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    bsdf = si.bsdf(ray)
+    bad_probe = (mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta) & si.is_valid()) | ~si.is_valid()
+    bad = np.array(bad_probe, dtype=bool).reshape(h, w, g * g).any(axis=2)
+    dil = bad.copy()
+    dil[1:] |= bad[:-1]; dil[:-1] |= bad[1:]; dil[:, 1:] |= bad[:, :-1]; dil[:, :-1] |= bad[:, 1:]
+    return ~dil

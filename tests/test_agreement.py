@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import agreement, cached_reference, render_batches, scene_path
+from helpers import agreement, cached_reference, no_delta_mask, render_batches, scene_path
 
 RES = 32
 BATCHES = 16
@@ -22,26 +22,6 @@ BATCHES = 16
 
 def load(name, max_depth, integrator='path'):
     return mi.load_file(scene_path(name), res=RES, max_depth=max_depth, integrator=integrator)
-
-
-def no_delta_mask(scene):
-    """Pixels whose whole footprint (8x8 sub-pixel probes, dilated by one pixel) sees only
-    surfaces without a delta lobe."""
-    sensor = scene.sensors()[0]
-    film = sensor.film()
-    w, h = film.crop_size()
-    g = 8
-    iy, ix, sy, sx = np.meshgrid(np.arange(h), np.arange(w), np.arange(g), np.arange(g), indexing='ij')
-    u = (ix + (sx + 0.5) / g) / w
-    v = (iy + (sy + 0.5) / g) / h
-    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u.ravel(), v.ravel()), mi.Point2f(0.5))
-    si = scene.ray_intersect(ray)
-    bsdf = si.bsdf(ray)
-    has_delta = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta) & si.is_valid()
-    bad = np.array(has_delta, dtype=bool).reshape(h, w, g * g).any(axis=2)
-    dil = bad.copy()
-    dil[1:] |= bad[:-1]; dil[:-1] |= bad[1:]; dil[:, 1:] |= bad[:, :-1]; dil[:, :-1] |= bad[:, 1:]
-    return ~dil
 
 
 def reference(name, max_depth, which, spp):
