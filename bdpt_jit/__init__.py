@@ -2,26 +2,88 @@
 
 ``import bdpt_jit`` registers the integrator ``bdpt`` with Mitsuba for the active variant
 (``llvm_ad_rgb`` is selected if none is active yet). After switching variants, call
-``bdpt_jit.register()`` again.
+``bdpt_jit.register()`` again. If no variant can be activated (no libLLVM >= 16 for the LLVM
+backend), the import still succeeds and ``register()`` raises with the reason.
 """
 
-import mitsuba as mi
+import os
+import sys
+import tempfile
 
 __version__ = '0.1.0'
 
 
+def _capture_fd2(fn):
+    """Run ``fn`` with file descriptor 2 captured; returns (result or exception, text)."""
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode='w+b') as log:
+        os.dup2(log.fileno(), 2)
+        try:
+            result = fn()
+        except Exception as e:
+            result = e
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        log.seek(0)
+        return result, log.read().decode(errors='replace')
+
+
+# Dr.Jit starts its LLVM backend on import and, without libLLVM, writes its own lines to
+# stderr before any error can be handled: keep them, and show them only if they matter.
+_mi, _import_log = _capture_fd2(lambda: __import__('mitsuba'))
+if isinstance(_mi, Exception):
+    raise _mi
+mi = _mi
+
+_register_error = None
+
+
 def register():
-    """Register ``bdpt`` for the active Mitsuba variant."""
+    """Register ``bdpt`` for the active Mitsuba variant (``llvm_ad_rgb`` if none is active)."""
     if mi.variant() is None:
         mi.set_variant('llvm_ad_rgb')
     from .integrator import BDPTIntegrator
     mi.register_integrator('bdpt', lambda props: BDPTIntegrator(props))
 
 
-register()
+def set_variant_quietly(variant):
+    """``mi.set_variant`` that, when it fails (e.g. no libLLVM for the LLVM backend), keeps what
+    Dr.Jit's C library wrote to stderr in the raised error instead of on the terminal."""
+    result, text = _capture_fd2(lambda: mi.set_variant(variant))
+    if isinstance(result, Exception):
+        result.args = ((str(result) + '\n' + _import_log + text).strip(),)
+        raise result
+    if text:
+        sys.stderr.write(text)
 
-from .integrator import BDPTIntegrator  # noqa: E402
-from .params import PARAMS, ParameterError  # noqa: E402
-from .scene_check import UnsupportedSceneError  # noqa: E402
+
+def _register_quietly():
+    if mi.variant() is None:
+        set_variant_quietly('llvm_ad_rgb')
+    elif _import_log:
+        sys.stderr.write(_import_log)
+    register()
+
+
+try:
+    _register_quietly()
+except Exception as e:          # e.g. Dr.Jit's LLVM backend without libLLVM: report on use
+    _register_error = e
+
+
+def __getattr__(name):
+    # the kernels' modules need an active JIT variant: import them on first use
+    if name == 'BDPTIntegrator':
+        from .integrator import BDPTIntegrator
+        return BDPTIntegrator
+    if name in ('PARAMS', 'ParameterError'):
+        from . import params
+        return getattr(params, name)
+    if name == 'UnsupportedSceneError':
+        from .scene_check import UnsupportedSceneError
+        return UnsupportedSceneError
+    raise AttributeError(f"module 'bdpt_jit' has no attribute {name!r}")
+
 
 __all__ = ['BDPTIntegrator', 'PARAMS', 'ParameterError', 'UnsupportedSceneError', 'register']

@@ -94,7 +94,9 @@ class StrategyLayers:
             for c in range(3):
                 dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value[c], off + c, inside)
 
-    def images(self):
+    def images(self, scale=1.0):
+        """The layers as numpy arrays; ``scale`` as the render's (an interrupted render traced
+        fewer samples than its 1/spp factors assume; passes cover whole images then)."""
         import numpy as np
-        a = np.array(self.buf).reshape(len(self.names), 2, self.h, self.w, 3)
+        a = np.array(self.buf).reshape(len(self.names), 2, self.h, self.w, 3) * scale
         return {name: {'weighted': a[i, 0], 'unweighted': a[i, 1]} for i, name in enumerate(self.names)}

@@ -20,6 +20,14 @@ BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 
 
+def _caused_by_interrupt(exc):
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 class Context:
     """What the kernels are specialised to: the scene, the settings, and which strategies
     are possible. Plain Python values here become trace-time constants. (A plain class on
@@ -155,21 +163,22 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(passes):
             try:
                 self.render_pass(ctx, scene, sensor, acc, seed, i, spp_pass, pixel_start, pixel_count)
-            except KeyboardInterrupt:
-                if samples_done == 0:
+                levels_used = max(levels_used, ctx.levels_used)
+                samples_done += spp_pass * pixel_count
+                if self.progress is not None:
+                    self.progress(samples_done, spp * n_pixels)
+            except (KeyboardInterrupt, RuntimeError) as e:
+                # Ctrl-C while Dr.Jit traces a loop arrives as a RuntimeError caused by it
+                if samples_done == 0 or not _caused_by_interrupt(e):
                     raise
                 interrupted = True          # keep what the finished passes rendered
                 break
-            levels_used = max(levels_used, ctx.levels_used)
-            samples_done += spp_pass * pixel_count
-            if self.progress is not None:
-                self.progress(samples_done, spp * n_pixels)
         # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
         # traced than that scale assumes (camera samples are normalised per pixel anyway).
         light_scale = spp * n_pixels / samples_done if samples_done else 1.0
         image = acc.develop(light_scale)
         dr.eval(image)
-        self.strategy_images = ctx.layers.images() if ctx.layers is not None else None
+        self.strategy_images = ctx.layers.images(light_scale) if ctx.layers is not None else None
         self.last_render_info = {
             'strategies': ctx.strategies(),
             'passes': len(passes),
@@ -194,7 +203,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ctx.levels_used = 0
         sampler = sensor.sampler().clone()
         sampler.set_sample_count(spp_pass)
-        sampler.seed((seed * 1000003 + i * 7919) & 0xFFFFFFFF, n)
+        # an opaque seed: a literal would be baked into the kernels and recompile them per seed
+        sampler.seed(dr.opaque(mi.UInt32, (seed * 1000003 + i * 7919) & 0xFFFFFFFF), n)
         store = None
         if ctx.needs_light_pass:
             cap = self.light_capacity(ctx)
