@@ -185,11 +185,11 @@ class CameraTracer:
                                    mi.Float(0), mi.Float(0), ~si.is_valid() & (max_edges >= 1), film_pos)
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
-        pdf_cam_w = c.camera.pdf_w(si.p)
+        pdf_cam_w = c.camera.pdf_w(ray.d)
         d_vcm, d_vc = mis.camera_init(pdf_cam_w)
         # Mitsuba starts camera rays on the near-clip plane: the first edge's length is measured
-        # from the pinhole, as every other strategy measures it.
-        dist2_cam = dr.squared_norm(si.p - c.camera.position)
+        # from the pinhole (lens point), as every other strategy measures it.
+        dist2_cam = dr.squared_norm(si.p - c.camera.lens_point(ray))
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)

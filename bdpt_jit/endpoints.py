@@ -292,21 +292,43 @@ def direction_sample_at(si_e: mi.SurfaceInteraction3f, ps: mi.PositionSample3f, 
 
 
 class Camera:
-    """Perspective camera: importance We and its densities, normalised over the crop window
-    (Mitsuba normalises the perspective sensor's importance over the crop rectangle)."""
+    """Perspective and thin-lens cameras: the density of a camera subpath's first direction.
+
+    The film position is uniform over the crop window, so the direction from the pinhole (or
+    from the sampled lens point, through the matching point of the focus plane) has the
+    density We(omega) = 1 / (A cos^3 theta) per unit solid angle, A the crop's area on the image
+    plane at distance 1 and theta the angle to the optical axis. The lens point's own density
+    is the same in every strategy (camera rays and splats sample it alike) and cancels in the
+    MIS ratios. Mitsuba normalises the importance over the crop too, so splat values come from
+    ``sensor.sample_direction`` unchanged."""
 
     def __init__(self, sensor: mi.Sensor):
+        import numpy as np
         self.sensor = sensor
         film = sensor.film()
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
         self.crop_size = mi.ScalarVector2f(film.crop_size())
+        params = mi.traverse(sensor)
+        x_fov = float(dr.ravel(params['x_fov']).numpy()[0])
+        w, h = (float(v) for v in film.size())
+        cw, ch = (float(v) for v in film.crop_size())
+        tan_x = math.tan(math.radians(x_fov) / 2)
+        area = (2 * tan_x) * (2 * tan_x * h / w) * (cw * ch) / (w * h)
+        self.inv_area = 1.0 / area
+        m = np.array(sensor.world_transform().matrix).reshape(4, 4)
+        axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        self.axis = mi.Vector3f(*[float(x) for x in axis])
+        self.near_clip = float(sensor.near_clip())
         # the pinhole (sample_ray's origins lie on the near-clip plane instead)
-        self.position = mi.Point3f(sensor.world_transform() @ mi.ScalarPoint3f(0, 0, 0))
+        self.position = mi.Point3f(*[float(x) for x in m[:3, 3]])
 
-    def pdf_w(self, p_hit):
-        """We(omega) of the direction from the camera to ``p_hit``: the camera's density per
-        unit solid angle of that direction (pixel positions are uniform over the crop)."""
-        it = dr.zeros(mi.Interaction3f)
-        it.p = p_hit
-        ds, w = self.sensor.sample_direction(it, mi.Point2f(0.5), True)
-        return dr.select(ds.pdf > 0, w.x * dr.square(ds.dist), 0.0)
+    def pdf_w(self, d):
+        """We(omega) of the unit direction ``d`` leaving the camera (pinhole or lens point)."""
+        c = dr.dot(d, self.axis)
+        return dr.select(c > 0, self.inv_area * dr.rcp(dr.select(c > 0, c * c * c, 1.0)), 0.0)
+
+    def lens_point(self, ray):
+        """The pinhole or lens point a camera ray left from: Mitsuba starts camera rays on the
+        near-clip plane, near_clip / cos(theta) along the ray."""
+        c = dr.dot(ray.d, self.axis)
+        return ray.o - ray.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))

@@ -148,7 +148,7 @@ class LightTracer:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
         pdf_light_a = e.pdf_light_a
-        pdf_cam_a = sensor_w.x * dr.abs(cos_g)                # We |cos| / d^2
+        pdf_cam_a = c.camera.pdf_w(-ds.d) * dr.abs(cos_g) * safe_div(1.0, dr.square(ds.dist))  # We |cos| / d^2
         w = c.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
         value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * c.splat_scale
         film.put_splat(ds.uv, value * w, ok)
@@ -210,7 +210,7 @@ class LightTracer:
                 if dr.hint(c.stats is not None, mode='scalar'):
                     c.stats.shadow(do_splat, blocked)
                 do_splat &= ~blocked
-                pdf_cam_a = sensor_w.x * dr.abs(dr.dot(si.n, ds.d))
+                pdf_cam_a = c.camera.pdf_w(-ds.d) * dr.abs(dr.dot(si.n, ds.d)) * safe_div(1.0, dr.square(ds.dist))
                 w = mis.weight_t1(d_vcm, d_vc, pdf_cam_a, pdf_rev_w)
                 value = beta * f * sensor_w * c.splat_scale
                 film.put_splat(ds.uv, value * w, do_splat)

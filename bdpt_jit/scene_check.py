@@ -5,7 +5,7 @@ import mitsuba as mi
 
 SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
 SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap')
-SUPPORTED_SENSORS = ('perspective',)
+SUPPORTED_SENSORS = ('perspective', 'thinlens')
 
 
 class UnsupportedSceneError(ValueError):
@@ -42,7 +42,7 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
     s_name = _plugin_name(sensor)
     if s_name not in SUPPORTED_SENSORS:
         raise UnsupportedSceneError(
-            f"bdpt: sensor plugin '{s_name}' is not supported yet (supported: perspective)")
+            f"bdpt: sensor plugin '{s_name}' is not supported yet (supported: {', '.join(SUPPORTED_SENSORS)})")
     if sensor.get_medium() is not None:
         raise UnsupportedSceneError("bdpt: participating media are not supported (the sensor has a medium)")
     for em in scene.emitters():

@@ -151,3 +151,40 @@ def test_stiff_lights_render_finite(case, technique, tmp_path):
     assert a.min() >= -1e-6
     if case == 'spot_away':                # no light reaches anything the camera sees
         assert np.all(a == 0)
+
+
+def thinlens_box():
+    d = mi.cornell_box()
+    d['sensor'].update(type='thinlens', aperture_radius=0.1, focus_distance=3.0)
+    d['sensor']['film'].update(width=RES, height=RES, rfilter={'type': 'box'})
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('max_depth,technique,mis', [
+    (1, 'bdpt', 'power'),       # the light seen through the lens: s=0 against s=1,t=1
+    (3, 'bdpt', 'power'),
+    (4, 'bdpt', 'uniform'),
+    (3, 'pt', 'power'),
+    (3, 'lt', 'power'),
+    (3, 'lt', 'uniform'),
+])
+def test_thinlens_cornell_box(max_depth, technique, mis):
+    """A thin-lens view (defocused) of the Cornell box: light-image splats through sampled lens
+    points; no delta surfaces, so `path` is a reference everywhere."""
+    scene = thinlens_box()
+    ref = cached_reference(('thinlens-box', RES, max_depth, 'path', 1024, BATCHES),
+                           lambda: render_batches(scene, {'type': 'path', 'max_depth': max_depth}, 1024, BATCHES, seed0=30_000))
+    spp = 1024 if technique == 'pt' or mis == 'uniform' else 64
+    mine = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique, 'mis': mis}, spp, BATCHES)
+    ok, msg = agreement(mine, ref)
+    assert ok, f'{technique}/{mis} max_depth={max_depth}: {msg}'
+
+
+def test_orthographic_is_refused_clearly():
+    d = mi.cornell_box()
+    d['sensor'] = {'type': 'orthographic', 'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}}
+    from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match="sensor plugin 'orthographic' is not supported"):
+        check_scene(scene, scene.sensors()[0])

@@ -12,7 +12,9 @@ sum to 1 over the strategies, and be finite and in [0, 1].
 Paths start on each emitter kind (endpoints.py): area (a surface point), delta position
 (point/spot: discrete position, no s=0 and no s=1,t=1), delta direction (directional: a
 discrete direction, its first edge from a disk, per unit projected area) and environment
-(constant/envmap: a direction per unit solid angle, first edge from a disk)."""
+(constant/envmap: a direction per unit solid angle, first edge from a disk), and end on each
+camera kind: a pinhole (z0 fixed) or a thin lens, whose lens point z0 every strategy samples
+with the same area density (camera rays and splats alike), which must cancel."""
 
 import drjit as dr
 import mitsuba as mi
@@ -78,7 +80,7 @@ def allowed(technique, k, s, P):
     return ok
 
 
-def brute_force(kind, technique, P):
+def brute_force(kind, technique, P, p_lens=None):
     k = P['k']
     d2, cosA, cosB, pL, pE = P['d2'], P['cosA'], P['cosB'], P['pL'], P['pE']
     beta = {'power': 2.0, 'balance': 1.0}.get(kind)
@@ -110,6 +112,8 @@ def brute_force(kind, technique, P):
                 p = p * pE[:, 1]
             else:
                 p = p * pE[:, i + 1] * cosA[:, i] / d2[:, i]
+        if p_lens is not None:                              # thin lens: z0 sampled on the lens
+            p = p * p_lens
         dens.append(np.where(allowed(technique, k, s, P), p, 0.0))
     dens = np.array(dens)
     if kind == 'uniform':
@@ -196,15 +200,17 @@ def recursive(kind, technique, P):
     return np.array(out)
 
 
+@pytest.mark.parametrize('camera', ['pinhole', 'thinlens'])
 @pytest.mark.parametrize('emitter', KINDS)
 @pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', list(range(1, 11)))
-def test_weights_partition_of_unity(k, kind, technique, emitter):
+def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
     rng = np.random.default_rng(1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter)
     w_rec = recursive(kind, technique, P)
-    w_ref = brute_force(kind, technique, P)
+    p_lens = 10.0 ** rng.uniform(-1, 3, size=M) if camera == 'thinlens' else None
+    w_ref = brute_force(kind, technique, P, p_lens)
     assert np.all(np.isfinite(w_rec))
     assert np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
     any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]).any(axis=0)
