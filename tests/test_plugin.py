@@ -93,3 +93,11 @@ def test_other_variants_are_refused():
             bdpt_jit.BDPTIntegrator()
     finally:
         mi.set_variant('llvm_ad_rgb')
+
+
+def test_readme_parameter_table_is_the_source_table():
+    """The README shows the parameter table that params.py defines (one source of truth)."""
+    import os
+    from bdpt_jit.params import markdown_table
+    readme = open(os.path.join(os.path.dirname(os.path.dirname(__file__)), 'README.md')).read()
+    assert markdown_table() in readme
