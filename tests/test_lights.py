@@ -188,3 +188,23 @@ def test_orthographic_is_refused_clearly():
     scene = mi.load_dict(d)
     with pytest.raises(UnsupportedSceneError, match="sensor plugin 'orthographic' is not supported"):
         check_scene(scene, scene.sensors()[0])
+
+
+def test_hide_emitters_with_an_environment():
+    """hide_emitters hides the directly seen environment as Mitsuba's `path` does (and the
+    directly seen area light), while everything the environment lights stays."""
+    name, md = 'all-lights.xml', 3
+    scene = load(name, md)
+    ref = cached_reference((name, RES, md, 'path-hidden', 1024, BATCHES),
+                           lambda: render_batches(scene, {'type': 'path', 'max_depth': md, 'hide_emitters': True},
+                                                  1024, BATCHES, seed0=40_000))
+    mine = render_batches(scene, {'type': 'bdpt', 'max_depth': md, 'hide_emitters': True}, 64, BATCHES)
+    # Pixels that see the area light itself are left out: there Mitsuba's `path` returns ~3e-4
+    # (0.004% of the light's radiance) from max_depth 2 on although the light's BSDF is black,
+    # and bdpt returns 0 (noticed, not explained).
+    visible = reference(name, md, 'path', 1024).mean(axis=0)
+    on_light = (visible >= 4.0).any(axis=2)
+    ok, msg = agreement(mine, ref, mask=~on_light)
+    assert ok, msg
+    sky = ~no_delta_mask(scene)            # pixels that see the environment (no delta surfaces here)
+    assert (sky & ~on_light).any()
