@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
-from .endpoints import AreaKinds, safe_div, sel
+from .endpoints import AreaKinds, finite_or_zero, safe_div, sel
 from .roulette import roulette
 
 
@@ -68,7 +68,7 @@ class CameraTracer:
         ds.dist = mi.Float(dr.inf)
         ds.emitter = mi.EmitterPtr(env)
         p_sel = c.emitters.pdf_select(mi.EmitterPtr(env))
-        pdf_direct_w = c.scene.pdf_emitter_direction(prev, ds, escaped & (depth > 1))
+        pdf_direct_w = finite_or_zero(c.scene.pdf_emitter_direction(prev, ds, escaped & (depth > 1)))
         pdf_emit_w = p_sel * c.emitters.pdf_disk * env.pdf_direction(prev, ds, escaped)
         # seen directly: no other strategy can sample it (light tracing cannot hit the pinhole)
         w = dr.select(depth == 1, 1.0, c.mis.weight_s0(d_vcm, d_vc, pdf_direct_w, pdf_emit_w))

@@ -23,8 +23,11 @@ def adjoint_correction(si, wo_local, wo_world, active):
     and the mask that refuses light leaks (shading and geometric normals disagreeing about the
     side of a direction). ``si.wi`` is the local direction towards the previous vertex."""
     wi_world = si.to_world(si.wi)
-    cos_g_wi = dr.dot(si.n, wi_world)
-    cos_g_wo = dr.dot(si.n, wo_world)
+    # Mirrored (negative-determinant) transforms give a geometric normal opposite to the
+    # shading normal: orient it to the shading side, or every direction reads as a light leak.
+    n_g = dr.mulsign(si.n, dr.dot(si.n, si.sh_frame.n))
+    cos_g_wi = dr.dot(n_g, wi_world)
+    cos_g_wo = dr.dot(n_g, wo_world)
     cos_s_wi = mi.Frame3f.cos_theta(si.wi)
     cos_s_wo = mi.Frame3f.cos_theta(wo_local)
     valid = active & (cos_g_wi * cos_s_wi > 0) & (cos_g_wo * cos_s_wo > 0)

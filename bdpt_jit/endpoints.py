@@ -29,6 +29,14 @@ def safe_div(a, b):
     return dr.select(b != 0, a / dr.select(b != 0, b, 1.0), 0.0)
 
 
+def finite_or_zero(pdf):
+    """An emitter-sampling density that Mitsuba reports as +inf or NaN where its sampler cannot
+    produce the point (e.g. the cone of a sphere light of radius 1e-4, whose cos_max rounds to
+    1: ``pdf_emitter_direction`` is +inf while ``sample_emitter_direction`` returns weight 0).
+    That strategy cannot sample the path: its density is 0."""
+    return dr.select(dr.isfinite(pdf), pdf, 0.0)
+
+
 class Kinds:
     """Per-lane emitter kind masks. Kinds the scene does not have are the Python constant
     False, so code for them is not traced."""
@@ -236,7 +244,7 @@ class EmitterTable:
             ds.n = e.n_e
             ds.emitter = e.emitter
             ds.delta = mi.Bool(False)
-            pdf_w = self.scene.pdf_emitter_direction(si1, ds, active & neg(k.delta))
+            pdf_w = finite_or_zero(self.scene.pdf_emitter_direction(si1, ds, active & neg(k.delta)))
             area = pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(dist))
             out = sel(k.area, area, out)
             out = sel(k.env, pdf_w, out)
@@ -246,7 +254,7 @@ class EmitterTable:
     def pdf_direct_a(self, ref_it, ds, active):
         """Area emitters: density per unit area at the emitter point ``ds`` of emitter sampling
         from ``ref_it``, emitter choice included."""
-        pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active)
+        pdf_w = finite_or_zero(self.scene.pdf_emitter_direction(ref_it, ds, active))
         return pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist))
 
     def pdf_emit_w_at(self, emitter, ds, d_out, k=None):
