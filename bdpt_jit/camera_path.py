@@ -25,7 +25,7 @@ class CameraTracer:
         starting at crop pixel ``pixel_start``."""
         c = self.ctx
         idx = dr.arange(mi.UInt32, n)
-        pixel = idx // spp_pass + pixel_start
+        pixel = idx // dr.opaque(mi.UInt32, spp_pass) + dr.opaque(mi.UInt32, pixel_start)
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size

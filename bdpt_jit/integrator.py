@@ -150,8 +150,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             spp = sensor.sampler().sample_count()
         crop = film.crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
-        ctx.splat_scale = acc.splat_scale(spp)
-        ctx.inv_spp = 1.0 / spp
+        # opaque: literals would be baked into the kernels and recompile them for every spp
+        ctx.splat_scale = dr.opaque(mi.Float, acc.splat_scale(spp))
+        ctx.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         if self.settings['statistics']:
             ctx.stats = RayStats()
         if self.settings['strategy_images']:
