@@ -1,0 +1,402 @@
+"""The report of `benchmarks/compare.py`: `docs/results.md`, its plots and image crops, and the raw
+figures as JSON. Reads only what `compare_lib.run_scene` measured."""
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+import matplotlib
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from compare_lib import BASELINE, QUOTABLE, EPS_REL  # noqa: E402
+
+STYLE = {
+    'bdpt': ('tab:red', 'o', '-'), 'bdpt-balance': ('tab:orange', 's', '-'), 'bdpt-uniform': ('tab:brown', 'v', '-'),
+    'bdpt-pt': ('tab:purple', '^', '--'), 'bdpt-lt': ('tab:pink', 'D', '--'),
+    'path': ('tab:blue', 'o', '-'), 'ptracer': ('tab:cyan', 's', '-'),
+}
+
+
+# ------------------------------------------------------------------------------------------ numbers
+
+def fmt(x, digits=3):
+    if x == 0:
+        return '0'
+    if 1e-3 <= abs(x) < 1e4:
+        return f'{x:.{digits}g}'
+    return f'{x:.{digits - 1}e}'
+
+
+def quotable(value, ref_error):
+    return value > 0 and ref_error <= QUOTABLE * value
+
+
+def qfmt(value, ref_error):
+    """A figure, or in parentheses with a dagger where the reference's own error is too large to quote it."""
+    return fmt(value) if quotable(value, ref_error) else f'({fmt(value)})†'
+
+
+def table(header, rows):
+    out = ['| ' + ' | '.join(header) + ' |', '|' + '|'.join('---' for _ in header) + '|']
+    out += ['| ' + ' | '.join(str(c) for c in row) + ' |' for row in rows]
+    return '\n'.join(out)
+
+
+def finite_json(obj):
+    """Fails on a NaN or infinity anywhere in the figures (json would write them as bare NaN)."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        if not math.isfinite(float(obj)):
+            raise FloatingPointError('non-finite figure in the results')
+        return float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+# ------------------------------------------------------------------------------------------ images
+
+def srgb(x):
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def tonemap(img, scale, region=None):
+    out = srgb(img * scale)
+    if region is not None:
+        out = np.where(region[:, :, None], out, out * 0.25)
+    return out
+
+
+def crop_box(shape, frac):
+    h, w = shape[:2]
+    x0, y0, x1, y1 = frac
+    return int(round(x0 * w)), int(round(y0 * h)), max(int(round(x1 * w)), int(round(x0 * w)) + 1), \
+        max(int(round(y1 * h)), int(round(y0 * h)) + 1)
+
+
+def plot_crops(res, images, contestants, path):
+    spec = res['spec']
+    ref = images['crops']['reference']
+    region = images['region'] if spec['reference'] == 'light' else None
+    lum = ref.mean(axis=2)[region] if region is not None and region.any() else ref.mean(axis=2)
+    white = float(np.quantile(lum, 0.98))
+    scale = 1.0 / (white if white > 0 else max(float(lum.max()), 1e-8))
+    x0, y0, x1, y1 = crop_box(ref.shape, spec['crop'])
+    et = res['equal_time']['points']
+    panels = [('reference (full image)', None), ('reference', 'reference')] + \
+             [(c.label, c.key) for c in contestants]
+    ncol = 5
+    nrow = (len(panels) + ncol - 1) // ncol
+    fig, axes = plt.subplots(nrow, ncol, figsize=(2.6 * ncol, 3.1 * nrow))
+    axes = np.atleast_1d(axes).ravel()
+    for ax in axes:
+        ax.axis('off')
+    for ax, (title, key) in zip(axes, panels):
+        if key is None:
+            ax.imshow(tonemap(ref, scale, region), interpolation='nearest')
+            ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0, y1 - y0, fill=False, ec='yellow', lw=1.2))
+        else:
+            img = images['crops'][key]
+            reg = region[y0:y1, x0:x1] if region is not None else None
+            ax.imshow(tonemap(img[y0:y1, x0:x1], scale, reg), interpolation='nearest')
+            if key != 'reference':
+                p = et[key]
+                title = f"{title}\n{p['spp']} spp, {p['time']:.2f} s, relMSE {fmt(p['rel'])}"
+            else:
+                title = f"{title}\n{res['reference']['kind']}"
+        ax.set_title(title, fontsize=7.5)
+    fig.suptitle(f"{spec['title']}: crops at equal time ({res['equal_time']['budget_s']:g} s budget)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_errors(res, contestants, path):
+    spec = res['spec']
+    ref = res['reference']
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, field, ref_err, name in ((axes[0], 'rel', ref['expected_rel'], 'relative MSE'),
+                                     (axes[1], 'mse', ref['expected_mse'], 'MSE')):
+        for c in contestants:
+            pts = sorted(res['sweep'][c.key], key=lambda p: p['time'])
+            t = np.array([p['time'] for p in pts])
+            e = np.array([p[field] for p in pts])
+            color, marker, ls = STYLE.get(c.key, ('k', 'o', '-'))
+            ax.plot(t, e, ls, color=color, lw=1.2, label=c.label)
+            ok = np.array([quotable(v, ref_err) for v in e])
+            ax.plot(t[ok], e[ok], marker, color=color, ms=5, ls='none')
+            ax.plot(t[~ok], e[~ok], marker, color=color, ms=5, ls='none', mfc='none')
+        ax.axhline(ref_err, color='k', ls=':', lw=1, label="reference's own error")
+        ax.axhline(ref_err / QUOTABLE, color='grey', ls='--', lw=0.8, label='quotable above')
+        ax.axvline(res['equal_time']['budget_s'], color='grey', ls='-.', lw=0.8)
+        ax.set_xscale('log')
+        ax.set_yscale('log')
+        ax.set_xlabel('render time (s, median, after warm-up)')
+        ax.set_ylabel(name)
+        ax.grid(True, which='both', alpha=0.3)
+    axes[0].legend(fontsize=7, loc='lower left')
+    fig.suptitle(f"{spec['title']} ({spec['file']}): error against time; hollow markers: not quotable", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_summary(results, contestants, path):
+    fig, ax = plt.subplots(figsize=(10, 3.8))
+    n = len(contestants)
+    width = 0.8 / n
+    for j, c in enumerate(contestants):
+        vals = []
+        for r in results:
+            et = r['equal_time']['points']
+            vals.append(et[c.key]['rel'] / et[BASELINE]['rel'])
+        color = STYLE.get(c.key, ('k',))[0]
+        ax.bar(np.arange(len(results)) + (j - n / 2 + 0.5) * width, vals, width, color=color, label=c.label)
+    ax.axhline(1.0, color='k', lw=0.8)
+    ax.set_yscale('log')
+    ax.set_xticks(np.arange(len(results)))
+    ax.set_xticklabels([r['spec']['key'] for r in results])
+    ax.set_ylabel('relMSE / Mitsuba path (equal time)')
+    ax.legend(fontsize=7, ncol=4)
+    ax.grid(True, axis='y', which='both', alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------ markdown
+
+def ratio_cell(et, key, ref_err, field='rel'):
+    r = et[key][field] / et[BASELINE][field]
+    ok = quotable(et[key][field], ref_err) and quotable(et[BASELINE][field], ref_err)
+    return (f'{r:.3g}' if ok else f'({r:.3g})†'), r, ok
+
+
+def verdict(res, contestants):
+    spec = res['spec']
+    et = res['equal_time']['points']
+    ref_rel = res['reference']['expected_rel']
+    b, p = et['bdpt'], et[BASELINE]
+    cell, r, ok = ratio_cell(et, 'bdpt', ref_rel)
+    _, r_mse, ok_mse = ratio_cell(et, 'bdpt', res['reference']['expected_mse'], 'mse')
+    best = min(contestants, key=lambda c: et[c.key]['rel'])
+    figures = (f"relMSE {fmt(b['rel'])} ± {fmt(b['rel_se'])} ({b['spp']} spp, {b['time']:.2f} s) against "
+               f"path's {fmt(p['rel'])} ± {fmt(p['rel_se'])} ({p['spp']} spp, {p['time']:.2f} s): ratio {r:.3g}"
+               f"{'' if ok else ' (not quotable)'}; in MSE {fmt(b['mse'])} against {fmt(p['mse'])}: ratio "
+               f"{r_mse:.3g}{'' if ok_mse else ' (not quotable)'}")
+    if not ok:
+        head = 'cannot be decided at this reference quality (the reference\'s own error is not well below the figures)'
+    elif r < 1:
+        head = '`bdpt` (power) **beats** Mitsuba `path` at equal time'
+    else:
+        head = '`bdpt` (power) **does not beat** Mitsuba `path` at equal time'
+    extra = f"; the lowest relMSE at this budget: {best.label}" if best.key != 'bdpt' else ''
+    if ok and ok_mse and (r < 1) != (r_mse < 1):
+        extra += ('; relMSE and MSE disagree' + (" (path is biased here: it misses the sun's caustics)"
+                                                  if spec['reference'] == 'light' else ''))
+    return f"- **{spec['title']}** (`{spec['file']}`): {head}: {figures}{extra}."
+
+
+def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed):
+    out_md = Path(out_md)
+    fig_dir = Path(fig_dir)
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    rel = lambda p: os.path.relpath(p, out_md.parent).replace(os.sep, '/')  # noqa: E731
+    names = {c.key: c.label for c in contestants}
+    L = []
+    dirty = ' (with uncommitted changes)' if info['dirty'] else ''
+    L += ['# Comparison benchmarks: `bdpt` against Mitsuba 3', '',
+          f"Generated by `{command}` (**{settings.mode} mode**) on {info['date']} in {elapsed / 60:.1f} min.",
+          '',
+          f"- Machine: {info['cpu']}, {info['cores']} cores"
+          + (f", {info['memory_gib']:.0f} GiB" if info['memory_gib'] else '') + f"; {info['os']}; "
+          f"load average at the start {', '.join(f'{x:.2f}' for x in info['load_average'] or [])} "
+          "(other work on the machine slows every contestant alike: they are interleaved).",
+          f"- Versions: Mitsuba {info['mitsuba']}, Dr.Jit {info['drjit']}, variant `{info['variant']}`, "
+          f"Python {info['python']}, NumPy {info['numpy']}; bdpt_jit at commit `{info['commit']}`{dirty}.",
+          f"- Settings: {settings.res}x{settings.res} pixels; time budgets {', '.join(f'{b:g}' for b in settings.budgets)} s "
+          f"(the last is the equal-time budget) after probes at {', '.join(map(str, settings.probe_spp))} spp; "
+          f"{settings.repeats} timed renders per point after one warm-up render; references in "
+          f"{settings.ref_batches} batches of {settings.ref_spp} spp times a per-scene factor (below); rays counted at "
+          f"{settings.count_spp} spp.",
+          f"- Contestants, all with the scene's `max_depth` and `rr_depth` 5: "
+          + ', '.join(f'{c.label} (`{json.dumps(c.props)}`)' for c in contestants) + '.',
+          '']
+    L += ['## Summary: relative MSE at equal time, as a ratio to Mitsuba `path`', '',
+          f"Each cell is a contestant's relative MSE divided by `path`'s, both rendered with the same wall-clock budget "
+          f"(the last budget above; the exact times are in each scene's table). Below 1: lower error than `path`. "
+          f"† marks a figure that is not quotable: the reference's own expected error exceeds {QUOTABLE:g} of it.", '']
+    rows = []
+    for r in results:
+        et = r['equal_time']['points']
+        ref_rel = r['reference']['expected_rel']
+        rows.append([r['spec']['key'], f"{r['equal_time']['budget_s']:g}"] +
+                    [ratio_cell(et, c.key, ref_rel)[0] for c in contestants])
+    L += [table(['scene', 'budget (s)'] + [names[c.key] for c in contestants], rows), '']
+    L += ["The same for MSE (not normalised per pixel: bright pixels weigh most). The two can disagree where a "
+          "contestant is biased: `path` misses the sun's caustics in the Figure 7 scenes, which costs it at most "
+          "a relative error of 1 in each caustic pixel but a large absolute one.", '']
+    rows = []
+    for r in results:
+        et = r['equal_time']['points']
+        ref_mse = r['reference']['expected_mse']
+        rows.append([r['spec']['key'], f"{r['equal_time']['budget_s']:g}"] +
+                    [ratio_cell(et, c.key, ref_mse, 'mse')[0] for c in contestants])
+    L += [table(['scene', 'budget (s)'] + [names[c.key] for c in contestants], rows), '']
+    plot_summary(results, contestants, fig_dir / 'summary.png')
+    L += [f"![equal-time ratios]({rel(fig_dir / 'summary.png')})", '']
+    L += ['### Where `bdpt` wins and where it does not', '']
+    focus = [r for r in results if r['spec']['focus']]
+    others = [r for r in results if not r['spec']['focus']]
+    if focus:
+        L += ['Scenes where `bdpt` should win (caustics, indirect light):', '']
+        L += [verdict(r, contestants) for r in focus] + ['']
+    if others:
+        L += ['The other scenes:', '']
+        L += [verdict(r, contestants) for r in others] + ['']
+    L += ['### Compile time, all scenes together', '',
+          'Kernel compilation is kept out of the render times: every point starts with a warm-up render at its '
+          'sample count, whose compilation Dr.Jit\'s kernel history records (LLVM codegen and backend). '
+          '"New kernels per warm-up" counts kernels compiled or loaded from the disk cache, i.e. not already in '
+          'memory: well above 0 means the contestant\'s kernels depend on the sample count, so every new sample '
+          'count costs a compilation (or a disk-cache load when the benchmark ran before).', '']
+    rows = []
+    for c in contestants:
+        recs = [x for r in results for x in r['compile'][c.key]]
+        firsts = [r['sweep'][c.key][0] for r in results]
+        rows.append([c.label, len(recs), sum(x['compiled'] for x in recs),
+                     f"{sum(x['compiled'] + x['from_disk'] for x in recs) / max(len(recs), 1):.2f}",
+                     sum(x['from_disk'] for x in recs),
+                     f"{sum(x['codegen_s'] + x['backend_s'] for x in recs):.2f}",
+                     f"{sum(x['backend_s'] for x in recs) / max(sum(x['compiled'] for x in recs), 1):.3f}",
+                     f"{np.mean([p['warmup_s'] - p['time'] for p in firsts]):.3f}"])
+    L += [table(['contestant', 'warm-up renders', 'kernels compiled', 'new kernels per warm-up',
+                 'loaded from disk cache', 'codegen + backend (s)', 'backend per compiled kernel (s)',
+                 'first render minus warm render (s, mean)'],
+                rows), '']
+
+    for r in results:
+        spec, ref = r['spec'], r['reference']
+        key = spec['key']
+        L += [f"## {spec['title']} (`scenes/{spec['file']}`)", '', f"What it tests: {spec['tests']}. "
+              f"max_depth {spec['max_depth']}. Measured in {r['seconds']:.0f} s.", '']
+        if ref['kind'] == 'light':
+            L += [f"Reference: Mitsuba `ptracer`, {ref['spp_ptracer']} spp ({ref['batches']} batches). `path` cannot "
+                  f"be the reference here: it never hits the directional sun, so it misses the sun's caustics. Errors "
+                  f"are measured over the {ref['region_fraction'] * 100:.1f}% of the pixels whose footprint sees no "
+                  f"delta (mirror, glass) surface and no sky, where `ptracer` renders every path; the other pixels are "
+                  f"darkened in the crops. `path`'s error here includes its bias (the missing caustics)."]
+        else:
+            L += [f"Reference: Mitsuba `path` and `ptracer`, {ref['spp_path']} spp each ({ref['batches']} batches), "
+                  f"combined per pixel with inverse-variance weights from independent pilot renders "
+                  f"({ref['pilot']}; their variances averaged over {ref['weight_window']}x{ref['weight_window']} "
+                  f"pixels), `path` alone where a pixel's footprint sees a delta surface or nothing (where `ptracer` "
+                  f"cannot render every path); mean weight of `ptracer` {ref['ptracer_weight_mean']:.2f}. Errors over "
+                  f"the whole image."]
+        how = 'cached' if ref['cached'] else 'rendered in %.0f s' % ref['render_s']
+        L += ['', f"Reference's own expected error (the batch variance of its mean, averaged like the errors): MSE "
+              f"{fmt(ref['expected_mse'])}, relMSE {fmt(ref['expected_rel'])} ({how}). "
+              f"Contestants' errors include it; figures below {1 / QUOTABLE:g}x it are marked †.", '']
+        plot_errors(r, contestants, fig_dir / f'{key}-error.png')
+        L += [f"![error against time]({rel(fig_dir / f'{key}-error.png')})", '']
+
+        # sweep table
+        L += ['<details><summary>All points of the sweep</summary>', '']
+        rows = []
+        for c in contestants:
+            for p in r['sweep'][c.key]:
+                rows.append([names[c.key], p['stage'], p['spp'], f"{p['time']:.3f}",
+                             qfmt(p['mse'], ref['expected_mse']), qfmt(p['rel'], ref['expected_rel']),
+                             fmt(p['rel_se'])])
+        L += [table(['contestant', 'point', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.'], rows), '',
+              '</details>', '']
+
+        def rays_cells(key, spp):
+            w = r['reference']['res']
+            ry = r['rays'][key]
+            n = w * w * spp
+            tot, zero = ry['rays_per_sample'] * n, ry['zero_per_sample'] * n
+            return [f'{tot / 1e6:.3g}', f'{zero / 1e6:.3g}', f"{100 * zero / tot if tot else 0:.1f}"]
+
+        es = r['equal_samples']
+        L += [f"### Equal samples ({es['spp']} spp; the form of the paper's Table 1)", '']
+        rows = []
+        for c in contestants:
+            p = es['points'][c.key]
+            rows.append([names[c.key], p['spp'], qfmt(p['mse'], ref['expected_mse']),
+                         qfmt(p['rel'], ref['expected_rel']), f"{p['time']:.3f}"] + rays_cells(c.key, p['spp']))
+        L += [table(['contestant', 'spp', 'MSE', 'relMSE', 'time (s)', 'rays (M)', 'zero-contribution rays (M)',
+                     'zero (%)'], rows), '']
+        et = r['equal_time']
+        L += [f"### Equal time ({et['budget_s']:g} s budget; the form of the paper's Tables 2 and 3)", '']
+        rows = []
+        for c in contestants:
+            p = et['points'][c.key]
+            rows.append([names[c.key], p['spp'], f"{p['time']:.3f}", qfmt(p['mse'], ref['expected_mse']),
+                         qfmt(p['rel'], ref['expected_rel']), fmt(p['rel_se'])] + rays_cells(c.key, p['spp']) +
+                        [ratio_cell(et['points'], c.key, ref['expected_rel'])[0]])
+        L += [table(['contestant', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.', 'rays (M)',
+                     'zero-contribution rays (M)', 'zero (%)', 'relMSE / path'], rows), '']
+        # compile
+        L += ['### Compile time (apart from render time)', '']
+        rows = []
+        for c in contestants:
+            recs = r['compile'][c.key]
+            first = r['sweep'][c.key][0]
+            rows.append([names[c.key], len(recs), sum(x['kernels'] for x in recs),
+                         sum(x['compiled'] for x in recs), sum(x['from_disk'] for x in recs),
+                         f"{sum(x['codegen_s'] for x in recs):.3f}", f"{sum(x['backend_s'] for x in recs):.3f}",
+                         f"{first['warmup_s']:.3f}", f"{first['time']:.3f}"])
+        L += [table(['contestant', 'warm-up renders', 'kernels launched', 'compiled', 'loaded from disk cache',
+                     'codegen (s)', 'LLVM backend (s)', f"first render at {r['sweep'][contestants[0].key][0]['spp']} spp (s)",
+                     'same, warm (s)'], rows), '']
+        plot_crops(r, images[key], contestants, fig_dir / f'{key}-crops.png')
+        L += [f"![crops]({rel(fig_dir / f'{key}-crops.png')})", '']
+
+    L += ['## Method', '',
+          '- **Error metrics.** MSE: mean over the measured pixels and the three channels of (image - reference)^2. '
+          f'Relative MSE: the same terms divided by reference^2 + eps, eps = ({EPS_REL:g} m)^2 with m the mean of '
+          'the reference over the measured pixels (so that dark pixels do not dominate). Each point averages the '
+          'errors of all its renders (the warm-up and the timed repeats, each with its own seed); "s.e." is the '
+          'standard error of that average (large where a contestant is heavy-tailed).',
+          "- **References.** Rendered once per scene, mode and scene file, and cached under `benchmarks/cache/` "
+          "(keyed by the scene file's hash, resolution, depth and sample counts). Their own remaining error is the "
+          "variance of their mean estimated from independent batches, summed over the measured pixels: a contestant's "
+          "measured error is its own error plus this (they are independent), so a figure is quoted only where the "
+          f"reference's error is below {QUOTABLE:g} of it; otherwise it is shown in parentheses with †. Batch "
+          "variances underestimate heavy tails (caustics seen through `path`), so where a pixel relies on `path` for "
+          "a caustic, the estimate is optimistic.",
+          '- **Time.** Wall clock of `mi.render` with `dr.sync_thread()` before the clock stops, the median of the '
+          'timed renders after one warm-up render at the same spp (kernels depend on the sample count). Each '
+          'contestant\'s spp for a budget comes from a linear fit of time against spp over its earlier points, so '
+          'the achieved times differ a little from the budgets; the tables give them. Contestants are interleaved '
+          'render by render.',
+          '- **Compile time.** From Dr.Jit\'s kernel history during the warm-up renders: LLVM codegen and backend '
+          'time of every kernel launched; "loaded from disk cache" counts kernels found in `~/.drjit` (compiled '
+          'in an earlier run), whose backend time is only the load. The Python tracing of the kernels is in every '
+          'render and so in the render times.',
+          "- **Rays.** `bdpt`: its `statistics` counters. Mitsuba's `path` and `ptracer` count no rays, so "
+          '`benchmarks/raycount.py` replays their random walks (same sampling and Russian roulette decisions as '
+          "Mitsuba 3.9.1's C++) and counts the same categories; zero-contribution rays are extension rays that leave "
+          'the scene and blocked shadow rays (a shadow ray to the back of a one-sided light counts as a ray, not as a '
+          f'zero-contribution one). Counted at {settings.count_spp} spp and scaled to each table\'s spp.',
+          '- **Crops.** The last timed render of each contestant at the equal-time budget, same exposure as the '
+          'reference (its 98th percentile maps to white), sRGB.',
+          '']
+    L += [f"Raw figures: [`{rel(fig_dir / 'results.json')}`]({rel(fig_dir / 'results.json')}).", '']
+    out_md.write_text('\n'.join(L))
+    with open(fig_dir / 'results.json', 'w') as f:
+        json.dump(finite_json({'settings': settings.__dict__, 'machine': info, 'command': command,
+                               'elapsed_s': elapsed, 'scenes': results}), f, indent=1, allow_nan=False)
