@@ -1,6 +1,7 @@
 """Camera subpaths: the strategies that end on the camera side, each weighted by mis.py.
 - s=0: the camera subpath hits an emitter;
-- s=1: emitter sampling from a camera vertex (Mitsuba's ``sample_emitter_direction``);
+- s=1: emitter sampling from a camera vertex (Mitsuba's ``sample_emitter_direction``, small
+  sphere emitters by bdpt's own cap sampling: endpoints.EmitterTable.sample_direct);
 - s>=2, t>=2: connection of a camera vertex to each stored light vertex, with a shadow ray.
 No connection is made at a delta vertex (a BSDF without a smooth component).
 
@@ -12,8 +13,10 @@ import drjit as dr
 import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
-from .endpoints import AreaKinds, finite_or_zero, safe_div, sel
+from .endpoints import AreaKinds, safe_div, sel
 from .roulette import roulette
+
+MIN_DIST2 = 2.0 ** -126   # smallest normal float32: 1 / MIN_DIST2 = 2^126 is finite
 
 
 class CameraTracer:
@@ -68,7 +71,7 @@ class CameraTracer:
         ds.dist = mi.Float(dr.inf)
         ds.emitter = mi.EmitterPtr(env)
         p_sel = c.emitters.pdf_select(mi.EmitterPtr(env))
-        pdf_direct_w = finite_or_zero(c.scene.pdf_emitter_direction(prev, ds, escaped & (depth > 1)))
+        pdf_direct_w = c.emitters.pdf_direct_w(prev, ds, escaped & (depth > 1))
         pdf_emit_w = p_sel * c.emitters.pdf_disk * env.pdf_direction(prev, ds, escaped)
         # seen directly: no other strategy can sample it (light tracing cannot hit the pinhole)
         w = dr.select(depth == 1, 1.0, c.mis.weight_s0(d_vcm, d_vc, pdf_direct_w, pdf_emit_w))
@@ -79,7 +82,7 @@ class CameraTracer:
     def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None):
         """s=1: emitter sampling from the camera vertex ``si``."""
         c = self.ctx
-        ds, em_w = c.scene.sample_emitter_direction(si, u, False, active)
+        ds, em_w = c.emitters.sample_direct(si, u, active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
@@ -111,12 +114,14 @@ class CameraTracer:
         y = v.interaction(c.time)
         to_y = y.p - si.p
         dist2 = dr.squared_norm(to_y)
-        ok &= dist2 > 0
+        # 1/dist2 must be finite: vertices ~1e-19 apart give a subnormal dist2 whose inverse
+        # overflows (a NaN once the power weight, 0 there, multiplies it)
+        ok &= dist2 > MIN_DIST2
         d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
         f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
-        f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok)
+        f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok, c.exact_adjoint)
         contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
-        ok &= ok_l & (dr.max(contrib) > 0)
+        ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
         blocked = c.scene.ray_test(si.spawn_ray_to(y.p), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)

@@ -35,6 +35,7 @@ class Context:
 
     Fields: scene, sensor, camera (endpoints.Camera), emitters (endpoints.EmitterTable),
     mis (mis.MIS), time, max_depth_edges, unbounded, rr_depth, hide_emitters, has_delta,
+    exact_adjoint (BSDFs that perturb their shading frame: connect.adjoint_eval),
     use_s0, use_s1, use_connect, splat_y0, splat_t1, splat_scale, n_opaque (the pass size as
     an opaque UInt32), layers (film.StrategyLayers or None), inv_spp."""
 
@@ -105,6 +106,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             mis=MIS(self.mis_kind, tech), time=sensor.shutter_open(),
             max_depth_edges=edges, unbounded=unbounded, rr_depth=self.rr_depth,
             hide_emitters=self.hide_emitters, has_delta=scene_has_delta_bsdf(scene),
+            exact_adjoint=scene_perturbs_normals(scene),
             use_s0=has_area and tech in ('bdpt', 'pt') and edges >= 1,
             use_env=scene.environment() is not None and tech in ('bdpt', 'pt') and edges >= 1,
             use_s1=has_emitters and tech in ('bdpt', 'pt') and edges >= 2,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .connect import CTX_IMPORTANCE, adjoint_correction, eval_light_vertex, reverse_pdf_w
+from .connect import CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w
 from .endpoints import direction_sample_at, safe_div
 from .roulette import roulette
 
@@ -205,7 +205,7 @@ class LightTracer:
                 do_splat = active & smooth & (depth + 1 <= max_edges)
                 ds, sensor_w = c.sensor.sample_direction(si, sampler.next_2d(), do_splat)
                 do_splat &= ds.pdf > 0
-                f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat)
+                f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat, c.exact_adjoint)
                 do_splat &= ok & (dr.max(f) > 0)
                 blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), do_splat)
                 if dr.hint(c.stats is not None, mode='scalar'):
@@ -224,12 +224,25 @@ class LightTracer:
             wo_world = si.to_world(bs.wo)
             corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
             active &= ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
-            beta *= bsdf_w * corr
-            if dr.hint(c.has_delta, mode='scalar'):
+            if dr.hint(c.exact_adjoint, mode='scalar'):
+                # BSDFs with their own shading frame (normal/bump maps): the exact adjoint
+                # value over the sampling density for smooth samples, Veach's factor for delta
+                if dr.hint(c.has_delta, mode='scalar'):
+                    is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                    smooth_sample = active & ~is_delta
+                else:
+                    is_delta = None
+                    smooth_sample = active
+                f_adj, pdf_rev_adj, _ = adjoint_eval(si, bsdf, bs.wo, wo_world, smooth_sample)
+                beta *= dr.select(smooth_sample, f_adj * safe_div(1.0, bs.pdf), bsdf_w * corr)
+                pdf_rev_w = dr.select(smooth_sample, pdf_rev_adj, 0.0)
+            elif dr.hint(c.has_delta, mode='scalar'):
+                beta *= bsdf_w * corr
                 is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 pdf_rev_w = dr.select(is_delta, 0.0,
                                       reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta))
             else:
+                beta *= bsdf_w * corr
                 is_delta = None                       # no delta lobe in the scene: not traced
                 pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active)
             cos_out = dr.abs(dr.dot(si.n, wo_world))
