@@ -106,11 +106,14 @@ class CameraTracer:
             c.layers.add(1, depth + 1, film_pos, value * w, value, active)
         return dr.select(active, beta * f * em_w * w, 0.0)
 
-    def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None):
-        """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot``."""
+    def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None,
+                    level=None):
+        """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot`` (at
+        ``level`` of the storage: needed by records that do not store the depth)."""
         c = self.ctx
         v = dr.gather(record, st_v, slot, active)
-        ok = active & (v.depth + depth + 1 <= c.max_depth_edges)
+        v_depth = v.depth_at(level)
+        ok = active & (v_depth + depth + 1 <= c.max_depth_edges)
         y = v.interaction(c.time)
         to_y = y.p - si.p
         dist2 = dr.squared_norm(to_y)
@@ -132,7 +135,7 @@ class CameraTracer:
             pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
             pdf_l_rev_w, pdf_c_rev_w)
         if c.layers is not None:
-            c.layers.add(v.depth + 1, depth + 1, film_pos, contrib * (w * c.inv_spp), contrib * c.inv_spp, ok)
+            c.layers.add(v_depth + 1, depth + 1, film_pos, contrib * (w * c.inv_spp), contrib * c.inv_spp, ok)
         return dr.select(ok, contrib * w, 0.0)
 
     @dr.syntax
@@ -146,7 +149,7 @@ class CameraTracer:
         j = mi.UInt32(0)
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.connect_one(record, st_v, j * c.n_opaque + idx, si, bsdf, depth, beta, d_vcm, d_vc,
-                                  active, film_pos)
+                                  active, film_pos, level=j)
             j += 1
         return L
 

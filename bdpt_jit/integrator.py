@@ -10,12 +10,12 @@ from .camera_path import CameraTracer
 from .endpoints import Camera, EmitterTable
 from .film import FilmAccumulator, StrategyLayers
 from .stats import RayStats
-from .light_path import LightStore, LightTracer, StoredVertex, StoredVertexTangents
+from .light_path import LightStore, LightTracer, record_type
 from .mis import MIS
-from .scene_check import check_scene, check_variant, scene_has_delta_bsdf, scene_perturbs_normals
+from .scene_check import VertexNeeds, check_scene, check_variant, scene_has_delta_bsdf, scene_perturbs_normals
 
 UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
-BYTES_PER_LIGHT_VERTEX = 108    # light_path.StoredVertexTangents: 27 words
+BYTES_PER_LIGHT_VERTEX = 128    # light_path.FIELDS: at most 32 words
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
 
@@ -35,7 +35,8 @@ class Context:
 
     Fields: scene, sensor, camera (endpoints.Camera), emitters (endpoints.EmitterTable),
     mis (mis.MIS), time, max_depth_edges, unbounded, rr_depth, hide_emitters, has_delta,
-    exact_adjoint (BSDFs that perturb their shading frame: connect.adjoint_eval),
+    exact_adjoint (BSDFs that perturb their shading frame: connect.adjoint_eval), record (the
+    light-vertex record type, light_path.record_type),
     use_s0, use_s1, use_connect, splat_y0, splat_t1, splat_scale, n_opaque (the pass size as
     an opaque UInt32), layers (film.StrategyLayers or None), inv_spp."""
 
@@ -106,7 +107,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             mis=MIS(self.mis_kind, tech), time=sensor.shutter_open(),
             max_depth_edges=edges, unbounded=unbounded, rr_depth=self.rr_depth,
             hide_emitters=self.hide_emitters, has_delta=scene_has_delta_bsdf(scene),
-            exact_adjoint=scene_perturbs_normals(scene),
+            exact_adjoint=scene_perturbs_normals(scene), record=record_type(VertexNeeds(scene)),
             use_s0=has_area and tech in ('bdpt', 'pt') and edges >= 1,
             use_env=scene.environment() is not None and tech in ('bdpt', 'pt') and edges >= 1,
             use_s1=has_emitters and tech in ('bdpt', 'pt') and edges >= 2,
@@ -193,6 +194,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             'camera_pass': ctx.needs_camera_pass,
             'light_vertex_levels': self.light_capacity(ctx),
             'light_vertex_levels_used': levels_used,
+            'light_vertex_fields': list(ctx.record.DRJIT_STRUCT),
             'time_s': _time.perf_counter() - t0,
         }
         if ctx.stats is not None:
@@ -212,8 +214,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if ctx.needs_light_pass:
             cap = self.light_capacity(ctx)
             if cap > 0:
-                store = LightStore(n=n, capacity=cap, record=StoredVertexTangents
-                                   if scene_perturbs_normals(scene) else StoredVertex)
+                store = LightStore(n=n, capacity=cap, record=ctx.record)
                 store.allocate()
             LightTracer(ctx).trace(sampler, n, acc, store)
             if store is not None:

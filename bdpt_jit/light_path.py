@@ -18,63 +18,98 @@ from .endpoints import direction_sample_at, safe_div
 from .roulette import roulette
 
 
-class StoredVertex:
-    """One light vertex y_j as connections need it: the fields of its SurfaceInteraction3f that
-    BSDFs read, its throughput and its MIS quantities: 25 words (27 with the tangents that
-    normal and bump maps read), where the full records take 51. Scatter and gather cost per
-    word on the CPU (measured: storing 35-word records took ~140 ms of a 720 ms render)."""
-    DRJIT_STRUCT = {
-        'p': mi.Point3f,          # position
-        'n': mi.Normal3f,         # geometric normal
-        'n_s': mi.Normal3f,       # shading normal
-        's': mi.Vector3f,         # shading tangent (the frame's t = n_s x s, as Mitsuba builds it)
-        'uv': mi.Point2f,         # surface parametrisation (textures)
-        'wi': mi.Vector3f,        # local direction towards y_{j-1}
-        'shape': mi.ShapePtr,     # its shape (mesh attributes)
-        'bsdf': mi.BSDFPtr,       # its BSDF
-        'prim_index': mi.UInt32,  # triangle (mesh attributes)
-        'beta': mi.Color3f,       # Le / p up to y_j, importance transport
-        'd_vcm': mi.Float,        # MIS quantities (mis.py)
-        'd_vc': mi.Float,
-        'depth': mi.UInt32,       # j: edges from y0
-    }
+# Every field a light vertex can need, in storage order. A scene stores only those its BSDFs
+# and shapes read (record_type): scatter and gather cost per word on the CPU (measured: storing
+# 35-word records took ~140 ms of a 720 ms render; 25 words +20% samples/s).
+FIELDS = {
+    'p': mi.Point3f,          # position
+    'n': mi.Normal3f,         # geometric normal         (absent: the shading normal, see below)
+    'n_s': mi.Normal3f,       # shading normal
+    's': mi.Vector3f,         # shading tangent          (absent: any tangent, isotropic BSDFs)
+    'uv': mi.Point2f,         # surface parametrisation  (textures)
+    'wi': mi.Vector3f,        # direction towards y_{j-1}: local (with s), else world
+    'shape': mi.ShapePtr,     # its shape                (mesh attributes)
+    'bsdf': mi.BSDFPtr,       # its BSDF
+    'prim_index': mi.UInt32,  # triangle                 (mesh attributes)
+    'dp_du': mi.Vector3f,     # surface tangents         (normal and bump maps)
+    'dp_dv': mi.Vector3f,
+    'beta': mi.Color3f,       # Le / p up to y_j, importance transport
+    'd_vcm': mi.Float,        # MIS quantities (mis.py)
+    'd_vc': mi.Float,
+    'depth': mi.UInt32,       # j: edges from y0         (absent: level + 1, every vertex stored)
+}
 
-    @staticmethod
-    def make(si, bsdf, beta, d_vcm, d_vc, depth):
-        v = StoredVertex()
-        v.p, v.n, v.n_s, v.s, v.uv, v.wi = si.p, si.n, si.sh_frame.n, si.sh_frame.s, si.uv, si.wi
-        v.shape, v.bsdf, v.prim_index = si.shape, bsdf, si.prim_index
-        v.beta, v.d_vcm, v.d_vc, v.depth = beta, d_vcm, d_vc, depth
+
+class VertexRecord:
+    """One light vertex y_j as connections need it: the fields of its SurfaceInteraction3f that
+    BSDFs read, its throughput and its MIS quantities. Subclasses name their fields in
+    DRJIT_STRUCT (a subset of FIELDS, chosen by record_type)."""
+    DRJIT_STRUCT = {}
+
+    @classmethod
+    def make(cls, si, bsdf, beta, d_vcm, d_vc, depth):
+        v = cls()
+        f = cls.DRJIT_STRUCT
+        src = {'p': lambda: si.p, 'n': lambda: si.n, 'n_s': lambda: si.sh_frame.n, 's': lambda: si.sh_frame.s,
+               'uv': lambda: si.uv, 'wi': lambda: si.wi if 's' in f else si.to_world(si.wi), 'shape': lambda: si.shape, 'bsdf': lambda: bsdf,
+               'prim_index': lambda: si.prim_index, 'dp_du': lambda: si.dp_du, 'dp_dv': lambda: si.dp_dv,
+               'beta': lambda: beta, 'd_vcm': lambda: d_vcm, 'd_vc': lambda: d_vc, 'depth': lambda: depth}
+        for k in f:
+            setattr(v, k, src[k]())
         return v
+
+    def depth_at(self, level):
+        """Edges from y0 to this vertex, stored at ``level`` (0-based)."""
+        return self.depth if 'depth' in self.DRJIT_STRUCT else level + 1
 
     def interaction(self, time):
         """The SurfaceInteraction3f that the vertex's BSDF is evaluated at."""
+        f = self.DRJIT_STRUCT
         si = dr.zeros(mi.SurfaceInteraction3f, dr.width(self.p))
         si.t = mi.Float(1.0)
         si.time = time
-        si.p, si.n, si.uv, si.wi = self.p, self.n, self.uv, self.wi
-        si.sh_frame = mi.Frame3f(self.s, dr.cross(self.n_s, self.s), self.n_s)
-        si.shape, si.prim_index = self.shape, self.prim_index
+        si.p = self.p
+        si.n = self.n if 'n' in f else self.n_s
+        if 's' in f:
+            si.sh_frame = mi.Frame3f(self.s, dr.cross(self.n_s, self.s), self.n_s)
+            si.wi = self.wi
+        else:
+            # isotropic BSDFs: any tangent, with wi stored in world space and made local to it
+            si.sh_frame = mi.Frame3f(self.n_s)
+            si.wi = si.sh_frame.to_local(self.wi)
+        if 'uv' in f:
+            si.uv = self.uv
+        if 'shape' in f:
+            si.shape, si.prim_index = self.shape, self.prim_index
+        if 'dp_du' in f:
+            si.dp_du, si.dp_dv = self.dp_du, self.dp_dv
         return si
 
 
-class StoredVertexTangents(StoredVertex):
-    """With the surface tangents, for scenes whose BSDFs perturb normals (normal/bump maps)."""
-    DRJIT_STRUCT = dict(StoredVertex.DRJIT_STRUCT, dp_du=mi.Vector3f, dp_dv=mi.Vector3f)
+def make_record_type(fields):
+    name = 'VertexRecord_' + '_'.join(fields)
+    return type(name, (VertexRecord,), {'DRJIT_STRUCT': {k: FIELDS[k] for k in FIELDS if k in fields}})
 
-    @staticmethod
-    def make(si, bsdf, beta, d_vcm, d_vc, depth):
-        v = StoredVertexTangents()
-        base = StoredVertex.make(si, bsdf, beta, d_vcm, d_vc, depth)
-        for k in StoredVertex.DRJIT_STRUCT:
-            setattr(v, k, getattr(base, k))
-        v.dp_du, v.dp_dv = si.dp_du, si.dp_dv
-        return v
 
-    def interaction(self, time):
-        si = StoredVertex.interaction(self, time)
-        si.dp_du, si.dp_dv = self.dp_du, self.dp_dv
-        return si
+# every field: what a scene the analysis knows nothing about gets
+StoredVertex = make_record_type(list(FIELDS))
+
+
+def record_type(needs):
+    """The record for a scene: ``needs`` (scene_check.VertexNeeds) says which optional fields
+    its BSDFs and shapes read."""
+    fields = ['p', 'n_s', 'wi', 'bsdf', 'beta', 'd_vcm', 'd_vc']
+    if needs.geometric_normal:
+        fields.append('n')
+    if needs.tangent:
+        fields.append('s')
+    if needs.uv:
+        fields += ['uv', 'shape', 'prim_index']
+    if needs.surface_tangents:
+        fields += ['dp_du', 'dp_dv']
+    if needs.depth:
+        fields.append('depth')
+    return make_record_type(fields)
 
 
 @dataclass
@@ -82,8 +117,8 @@ class LightStore:
     """Vertices y_1, y_2, ... of N light subpaths at non-delta surfaces, level-major."""
     n: int                       # light subpaths (one per camera sample)
     capacity: int                # levels allocated
-    record: type = StoredVertex  # StoredVertex or StoredVertexTangents
-    v: object = None             # StoredVertex arrays of size n * capacity
+    record: type = StoredVertex  # a VertexRecord type (record_type)
+    v: object = None             # record arrays of size n * capacity
     count: object = None         # mi.UInt32 per path: vertices stored
 
     def allocate(self):
