@@ -12,7 +12,7 @@ iterations, and the temporaries of each strategy stay inside its function."""
 import drjit as dr
 import mitsuba as mi
 
-from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w
+from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w, sample_bsdf, smooth_mask
 from .endpoints import AreaKinds, safe_div, sel
 from .roulette import roulette
 
@@ -90,7 +90,7 @@ class CameraTracer:
         if c.stats is not None:
             c.stats.shadow(active, blocked)
         active &= ~blocked
-        f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active)
+        f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active, c.diffuse)
         k = c.emitters.kinds(ds.emitter)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
         # per kind (endpoints.py): a surface point has a normal; a point light's discrete
@@ -121,8 +121,8 @@ class CameraTracer:
         # overflows (a NaN once the power weight, 0 there, multiplies it)
         ok &= dist2 > MIN_DIST2
         d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
-        f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok)
-        f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok, c.exact_adjoint)
+        f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok, c.diffuse)
+        f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok, c.exact_adjoint, c.diffuse)
         contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
         blocked = c.scene.ray_test(si.spawn_ray_to(y.p), ok)
@@ -157,17 +157,17 @@ class CameraTracer:
         """Sample the next direction; update throughput, MIS quantities and the roulette.
         Returns the next ray and the updated state."""
         c = self.ctx
-        bs, bsdf_w = bsdf.sample(CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+        bs, bsdf_w = sample_bsdf(bsdf, CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active, c.diffuse)
         active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
         beta = beta * bsdf_w
         wo_world = si.to_world(bs.wo)
         if c.has_delta:
             is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             pdf_rev_w = dr.select(is_delta, 0.0,
-                                  reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta))
+                                  reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active & ~is_delta, c.diffuse))
         else:
             is_delta = None                           # no delta lobe in the scene: not traced
-            pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active)
+            pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active, c.diffuse)
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                        bs.pdf, pdf_rev_w, is_delta)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
@@ -210,7 +210,7 @@ class CameraTracer:
                 L += self.strategy_s0(si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos)
 
             active &= depth + 1 <= max_edges          # every strategy below adds an edge
-            smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            smooth = active & smooth_mask(bsdf, c.diffuse)
 
             # ---------------- s = 1: emitter sampling ----------------
             if dr.hint(c.use_s1, mode='scalar'):

@@ -10,6 +10,7 @@ from .camera_path import CameraTracer
 from .endpoints import Camera, EmitterTable
 from .film import FilmAccumulator, StrategyLayers
 from .stats import RayStats
+from .connect import DiffuseTable
 from .light_path import LightStore, LightTracer, record_type
 from .mis import MIS
 from .scene_check import VertexNeeds, check_scene, check_variant, scene_has_delta_bsdf, scene_perturbs_normals
@@ -18,6 +19,11 @@ UNBOUNDED = 0x3FFFFFFF          # max_depth = -1
 BYTES_PER_LIGHT_VERTEX = 128    # light_path.FIELDS: at most 32 words
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
+
+
+def _diffuse_table(scene):
+    table = DiffuseTable(scene)
+    return table if table.any else None
 
 
 def _caused_by_interrupt(exc):
@@ -36,7 +42,7 @@ class Context:
     Fields: scene, sensor, camera (endpoints.Camera), emitters (endpoints.EmitterTable),
     mis (mis.MIS), time, max_depth_edges, unbounded, rr_depth, hide_emitters, has_delta,
     exact_adjoint (BSDFs that perturb their shading frame: connect.adjoint_eval), record (the
-    light-vertex record type, light_path.record_type),
+    light-vertex record type, light_path.record_type), diffuse (connect.DiffuseTable or None),
     use_s0, use_s1, use_connect, splat_y0, splat_t1, splat_scale, n_opaque (the pass size as
     an opaque UInt32), layers (film.StrategyLayers or None), inv_spp."""
 
@@ -108,6 +114,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             max_depth_edges=edges, unbounded=unbounded, rr_depth=self.rr_depth,
             hide_emitters=self.hide_emitters, has_delta=scene_has_delta_bsdf(scene),
             exact_adjoint=scene_perturbs_normals(scene), record=record_type(VertexNeeds(scene)),
+            diffuse=_diffuse_table(scene),
             use_s0=has_area and tech in ('bdpt', 'pt') and edges >= 1,
             use_env=scene.environment() is not None and tech in ('bdpt', 'pt') and edges >= 1,
             use_s1=has_emitters and tech in ('bdpt', 'pt') and edges >= 2,

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .connect import CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w
+from .connect import (CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w,
+                      sample_bsdf, smooth_mask)
 from .endpoints import direction_sample_at, safe_div
 from .roulette import roulette
 
@@ -226,7 +227,7 @@ class LightTracer:
                       label='bdpt_light_subpath',
                       exclude=[st_v]):
             bsdf = si.bsdf()
-            smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            smooth = smooth_mask(bsdf, c.diffuse)
 
             # ---------------- store y_depth for connections (s >= 2, t >= 2) ----------------
             if dr.hint(store_on, mode='scalar'):
@@ -240,7 +241,7 @@ class LightTracer:
                 do_splat = active & smooth & (depth + 1 <= max_edges)
                 ds, sensor_w = c.sensor.sample_direction(si, sampler.next_2d(), do_splat)
                 do_splat &= ds.pdf > 0
-                f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat, c.exact_adjoint)
+                f, pdf_fwd_w, pdf_rev_w, ok = eval_light_vertex(si, bsdf, ds.d, do_splat, c.exact_adjoint, c.diffuse)
                 do_splat &= ok & (dr.max(f) > 0)
                 blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), do_splat)
                 if dr.hint(c.stats is not None, mode='scalar'):
@@ -255,7 +256,7 @@ class LightTracer:
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
-            bs, bsdf_w = bsdf.sample(CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+            bs, bsdf_w = sample_bsdf(bsdf, CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active, c.diffuse)
             wo_world = si.to_world(bs.wo)
             corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
             active &= ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
@@ -275,11 +276,11 @@ class LightTracer:
                 beta *= bsdf_w * corr
                 is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 pdf_rev_w = dr.select(is_delta, 0.0,
-                                      reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta))
+                                      reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active & ~is_delta, c.diffuse))
             else:
                 beta *= bsdf_w * corr
                 is_delta = None                       # no delta lobe in the scene: not traced
-                pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active)
+                pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active, c.diffuse)
             cos_out = dr.abs(dr.dot(si.n, wo_world))
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
 
