@@ -111,7 +111,7 @@ class CameraTracer:
         """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot`` (at
         ``level`` of the storage: needed by records that do not store the depth)."""
         c = self.ctx
-        v = dr.gather(record, st_v, slot, active)
+        v = record.load(st_v, slot, active)
         v_depth = v.depth_at(level)
         ok = active & (v_depth + depth + 1 <= c.max_depth_edges)
         y = v.interaction(c.time)

@@ -41,6 +41,10 @@ FIELDS = {
 }
 
 
+_COMPONENTS = {mi.Point3f: 3, mi.Normal3f: 3, mi.Vector3f: 3, mi.Color3f: 3, mi.Point2f: 2,
+               mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1}
+
+
 class VertexRecord:
     """One light vertex y_j as connections need it: the fields of its SurfaceInteraction3f that
     BSDFs read, its throughput and its MIS quantities. Subclasses name their fields in
@@ -58,6 +62,73 @@ class VertexRecord:
         for k in f:
             setattr(v, k, src[k]())
         return v
+
+    # ---------------------------------------------------------------- packed storage
+    # A record is stored as consecutive float words, padded to whole packets of 4: one vertex
+    # is written and read with a few 4-wide packet scatters/gathers (Dr.Jit's PacketOps)
+    # instead of one scalar scatter/gather per word into separate arrays. Measured on the
+    # SmallVCM box: storing light vertices took 256 of 1090 ms per render as separate
+    # arrays; packets are ~4x faster to write and to read back.
+    @classmethod
+    def words(cls):
+        return sum(_COMPONENTS[t] for t in cls.DRJIT_STRUCT.values())
+
+    @classmethod
+    def packets(cls):
+        return (cls.words() + 3) // 4
+
+    def pack(self):
+        out = []
+        for k, t in self.DRJIT_STRUCT.items():
+            x = getattr(self, k)
+            if t in (mi.ShapePtr, mi.BSDFPtr):
+                out.append(dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x)))
+            elif t is mi.UInt32:
+                out.append(dr.reinterpret_array(mi.Float, x))
+            elif t is mi.Float:
+                out.append(x)
+            else:
+                out += [x[i] for i in range(_COMPONENTS[t])]
+        return out
+
+    @classmethod
+    def unpack(cls, words):
+        v = cls()
+        i = 0
+        for k, t in cls.DRJIT_STRUCT.items():
+            m = _COMPONENTS[t]
+            if t in (mi.ShapePtr, mi.BSDFPtr):
+                x = dr.reinterpret_array(t, dr.reinterpret_array(mi.UInt32, words[i]))
+            elif t is mi.UInt32:
+                x = dr.reinterpret_array(mi.UInt32, words[i])
+            elif t is mi.Float:
+                x = words[i]
+            else:
+                x = t(*words[i:i + m])
+            setattr(v, k, x)
+            i += m
+        return v
+
+    @classmethod
+    def allocate(cls, count):
+        """Uninitialised storage for ``count`` records (every read is masked by the stored
+        count; zeroing cost ~3% a pass)."""
+        return dr.empty(mi.Float, max(count, 1) * cls.packets() * 4)
+
+    @classmethod
+    def store(cls, storage, record, slot, active):
+        w = record.pack()
+        w += [mi.Float(0.0)] * (cls.packets() * 4 - len(w))
+        for q in range(cls.packets()):
+            dr.scatter(storage, mi.Vector4f(*w[4 * q:4 * q + 4]), slot * cls.packets() + q, active)
+
+    @classmethod
+    def load(cls, storage, slot, active):
+        w = []
+        for q in range(cls.packets()):
+            x = dr.gather(mi.Vector4f, storage, slot * cls.packets() + q, active)
+            w += [x.x, x.y, x.z, x.w]
+        return cls.unpack(w)
 
     def depth_at(self, level):
         """Edges from y0 to this vertex, stored at ``level`` (0-based)."""
@@ -119,21 +190,20 @@ class LightStore:
     n: int                       # light subpaths (one per camera sample)
     capacity: int                # levels allocated
     record: type = StoredVertex  # a VertexRecord type (record_type)
-    v: object = None             # record arrays of size n * capacity
+    v: object = None             # packed records (VertexRecord.allocate) for n * capacity slots
     count: object = None         # mi.UInt32 per path: vertices stored
 
     def allocate(self):
-        # uninitialised: every read is masked by the per-path count (zeroing cost ~3% a pass)
-        self.v = dr.empty(self.record, max(self.n * self.capacity, 1))
+        self.v = self.record.allocate(self.n * self.capacity)
         self.count = dr.zeros(mi.UInt32, self.n)
 
     def grow(self):
         """Double the levels, keeping what is stored (level-major: a plain prefix copy)."""
-        old, old_size, count = self.v, self.n * self.capacity, self.count
+        old, count = self.v, self.count
         self.capacity *= 2
         self.allocate()
         self.count = count
-        dr.scatter(self.v, old, dr.arange(mi.UInt32, old_size))
+        dr.scatter(self.v, old, dr.arange(mi.UInt32, dr.width(old)))
         dr.eval(self.v)
 
 
@@ -221,6 +291,7 @@ class LightTracer:
         # loop state (Dr.Jit traverses dataclasses), and the scatter would land in a copy.
         st_v = store.v if store_on else None
         make_record = store.record.make if store_on else None
+        store_record = store.record.store if store_on else None
         pausing = store_on and c.unbounded     # bounded storage is sized to never fill
         cap_eff = capacity if pausing else 0xFFFFFFFF
         while dr.hint(active & (count < cap_eff),
@@ -233,7 +304,7 @@ class LightTracer:
             if dr.hint(store_on, mode='scalar'):
                 do_store = active & smooth & (depth + 2 <= max_edges)
                 slot = count * c.n_opaque + idx
-                dr.scatter(st_v, make_record(si, bsdf, beta, d_vcm, d_vc, depth), slot, do_store)
+                store_record(st_v, make_record(si, bsdf, beta, d_vcm, d_vc, depth), slot, do_store)
                 count[do_store] += 1
 
             # ---------------- t = 1: connect y_depth to the camera ----------------

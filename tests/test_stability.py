@@ -888,8 +888,8 @@ def test_guard_connection_nearly_touching():
     si_c.p = mi.Point3f(mi.Float(deltas), 0.0, 0.3)
     si_l.p = mi.Point3f(0.0, mi.Float(deltas), 0.3)
     v = StoredVertex.make(si_l, si_l.bsdf(), mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.UInt32(1))
-    st = dr.zeros(StoredVertex, n)
-    dr.scatter(st, v, dr.arange(mi.UInt32, n))
+    st = StoredVertex.allocate(n)
+    StoredVertex.store(st, v, dr.arange(mi.UInt32, n), mi.Bool(True))
     L = CameraTracer(ctx).connect_one(StoredVertex, st, dr.arange(mi.UInt32, n), si_c, si_c.bsdf(), mi.UInt32(1),
                                       mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.Bool(True))
     val = np.array(L)[0]
