@@ -7,6 +7,7 @@ radiance-mode evaluation with the directions swapped (adjoint_eval)."""
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 CTX_RADIANCE = mi.BSDFContext(mi.TransportMode.Radiance)
 CTX_IMPORTANCE = mi.BSDFContext(mi.TransportMode.Importance)
@@ -38,7 +39,6 @@ class DiffuseTable:
     connection (measured +9% samples/s). The value is the same in both transport modes."""
 
     def __init__(self, scene):
-        import numpy as np
         bsdfs = {}
         for shape in scene.shapes():
             b = shape.bsdf()
@@ -58,7 +58,6 @@ class DiffuseTable:
 
     @staticmethod
     def constant_reflectance(bsdf):
-        import numpy as np
         if str(bsdf.class_name()) != 'SmoothDiffuse':
             return None
         params = mi.traverse(bsdf)

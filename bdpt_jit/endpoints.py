@@ -20,6 +20,7 @@ import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 INV_PI = 1.0 / dr.pi
 # (r/d)^2 below which a sphere emitter's visible cap is sampled by area (EmitterTable.small_sphere);
@@ -124,7 +125,6 @@ class EmitterTable:
             if e.class_name() == 'SpotLight':
                 params = mi.traverse(e)
                 cos_cut[i] = math.cos(math.radians(float(dr.ravel(params['cutoff_angle']).numpy()[0])))
-                import numpy as np
                 m = np.array(e.world_transform().matrix).reshape(4, 4)
                 a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
                 axis[i] = [float(a[0]), float(a[1]), float(a[2])]
@@ -136,7 +136,6 @@ class EmitterTable:
         for e, i in zip(emitters, ids):
             shape = e.get_shape()
             if shape is not None and shape.class_name() == 'Sphere':
-                import numpy as np
                 m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
                 sph_r[i] = float(np.linalg.norm(m[:3, 0]))
                 sph_c[i] = [float(x) for x in m[:3, 3]]
@@ -261,8 +260,7 @@ class EmitterTable:
             ds.emitter = e.emitter
             ds.delta = mi.Bool(False)
             pdf_w = self.pdf_direct_w(si1, ds, active & neg(k.delta))
-            area = pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(dist))
-            out = sel(k.area, area, out)
+            out = sel(k.area, self.per_area(pdf_w, ds), out)
             out = sel(k.env, pdf_w, out)
         return out
 
@@ -298,9 +296,9 @@ class EmitterTable:
         index, sel_w, u_x = self.scene.sample_emitter(u.x, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), index, active)
         u2 = mi.Point2f(u_x, u.y)
-        ds, spec = emitter.sample_direction(ref_it, u2, active)
         small, centre, r, z_min = self.small_sphere(emitter, ref_it.p)
         small &= active
+        ds, spec = emitter.sample_direction(ref_it, u2, active & ~small)
         # uniform on the cap {n : dot(n, axis) >= z_min} facing the reference point
         axis = dr.normalize(ref_it.p - centre)
         z = dr.fma(-u2.x, 1.0 - z_min, 1.0)
@@ -326,18 +324,22 @@ class EmitterTable:
         """Density per unit solid angle at ``ref_it`` of sample_direct choosing the emitter
         point or direction ``ds``, emitter choice included; 0 where a density is not finite
         (finite_or_zero)."""
-        pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active)
-        if self.has_sphere:
-            small, _, r, z_min = self.small_sphere(ds.emitter, ref_it.p)
-            cap = self._cap_pdf_w(r, z_min, dr.dot(ds.n, ds.d), ds.dist) * self.pdf_select(ds.emitter)
-            pdf_w = dr.select(small, cap, pdf_w)
-        return finite_or_zero(pdf_w)
+        if not self.has_sphere:
+            return finite_or_zero(self.scene.pdf_emitter_direction(ref_it, ds, active))
+        small, _, r, z_min = self.small_sphere(ds.emitter, ref_it.p)
+        pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active & ~small)
+        cap = self._cap_pdf_w(r, z_min, dr.dot(ds.n, ds.d), ds.dist) * self.pdf_select(ds.emitter)
+        return finite_or_zero(dr.select(small, cap, pdf_w))
 
     # ------------------------------------------------------------------ camera side
     def pdf_direct_a(self, ref_it, ds, active):
         """Area emitters: density per unit area at the emitter point ``ds`` of emitter sampling
         from ``ref_it``, emitter choice included."""
-        pdf_w = self.pdf_direct_w(ref_it, ds, active)
+        return self.per_area(self.pdf_direct_w(ref_it, ds, active), ds)
+
+    @staticmethod
+    def per_area(pdf_w, ds):
+        """A density per unit solid angle at the reference point, per unit area at ``ds.p``."""
         return pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist))
 
     def pdf_emit_w_at(self, emitter, ds, d_out, k=None):
@@ -394,7 +396,6 @@ class Camera:
     ``sensor.sample_direction`` unchanged."""
 
     def __init__(self, sensor: mi.Sensor):
-        import numpy as np
         self.sensor = sensor
         film = sensor.film()
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())

@@ -54,13 +54,12 @@ class VertexRecord:
     @classmethod
     def make(cls, si, bsdf, beta, d_vcm, d_vc, depth):
         v = cls()
-        f = cls.DRJIT_STRUCT
-        src = {'p': lambda: si.p, 'n': lambda: si.n, 'n_s': lambda: si.sh_frame.n, 's': lambda: si.sh_frame.s,
-               'uv': lambda: si.uv, 'wi': lambda: si.wi if 's' in f else si.to_world(si.wi), 'shape': lambda: si.shape, 'bsdf': lambda: bsdf,
-               'prim_index': lambda: si.prim_index, 'dp_du': lambda: si.dp_du, 'dp_dv': lambda: si.dp_dv,
-               'beta': lambda: beta, 'd_vcm': lambda: d_vcm, 'd_vc': lambda: d_vc, 'depth': lambda: depth}
-        for k in f:
-            setattr(v, k, src[k]())
+        src = {'p': si.p, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
+               'wi': si.wi if 's' in cls.DRJIT_STRUCT else si.to_world(si.wi),
+               'shape': si.shape, 'bsdf': bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
+               'dp_dv': si.dp_dv, 'beta': beta, 'd_vcm': d_vcm, 'd_vc': d_vc, 'depth': depth}
+        for k in cls.DRJIT_STRUCT:           # unused fields are never evaluated (lazy JIT)
+            setattr(v, k, src[k])
         return v
 
     # ---------------------------------------------------------------- packed storage

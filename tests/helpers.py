@@ -121,3 +121,26 @@ def no_delta_mask(scene):
     dil = bad.copy()
     dil[1:] |= bad[:-1]; dil[:-1] |= bad[1:]; dil[:, 1:] |= bad[:, :-1]; dil[:, :-1] |= bad[:, 1:]
     return ~dil
+
+
+def uv_sphere(n_theta, n_phi):
+    """Unit UV sphere: vertices (V, 3) float64 (each also its own outward normal) and triangles
+    (F, 3) uint32 with outward winding, poles first."""
+    verts = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]
+    for i in range(1, n_theta):
+        th = np.pi * i / n_theta
+        for j in range(n_phi):
+            ph = 2 * np.pi * j / n_phi
+            verts.append([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+
+    def ring(i, j):
+        return 2 + (i - 1) * n_phi + j % n_phi
+    faces = []
+    for j in range(n_phi):
+        faces.append([0, ring(1, j), ring(1, j + 1)])
+        faces.append([1, ring(n_theta - 1, j + 1), ring(n_theta - 1, j)])
+    for i in range(1, n_theta - 1):
+        for j in range(n_phi):
+            a, b, c, d = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
+            faces += [[a, c, b], [b, c, d]]
+    return np.array(verts, np.float64), np.array(faces, np.uint32)

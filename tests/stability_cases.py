@@ -257,27 +257,10 @@ def lowpoly_sphere_mesh(n_theta=4, n_phi=6, radius=1.0, center=(0, 0, 0), bsdf=N
     """A UV sphere of few triangles with per-vertex normals (interpolated shading normals far
     from the geometric ones), as an ``mi.Mesh`` object (load_dict accepts it)."""
     import drjit as dr
-    verts, normals = [[0, 0, 1], [0, 0, -1]], [[0, 0, 1], [0, 0, -1]]
-    for i in range(1, n_theta):
-        th = math.pi * i / n_theta
-        for j in range(n_phi):
-            ph = 2 * math.pi * j / n_phi
-            v = [math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)]
-            verts.append(v)
-            normals.append(v)
-    def ring(i, j):
-        return 2 + (i - 1) * n_phi + j % n_phi
-    faces = []
-    for j in range(n_phi):
-        faces.append([0, ring(1, j), ring(1, j + 1)])
-        faces.append([1, ring(n_theta - 1, j + 1), ring(n_theta - 1, j)])
-    for i in range(1, n_theta - 1):
-        for j in range(n_phi):
-            a, b, c, e = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
-            faces += [[a, c, b], [b, c, e]]
-    V = np.array(verts, np.float64) * radius + np.array(center, np.float64)
-    N = np.array(normals, np.float64)
-    F = np.array(faces, np.uint32)
+    from helpers import uv_sphere
+    unit, F = uv_sphere(n_theta, n_phi)
+    V = unit * radius + np.array(center, np.float64)
+    N = unit
     # outward winding: flip faces whose geometric normal points inwards
     for k, (a, b, c) in enumerate(F):
         n = np.cross(V[b] - V[a], V[c] - V[a])

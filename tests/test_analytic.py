@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from helpers import render_batches
+from helpers import render_batches, uv_sphere
 
 LE = 0.5
 
@@ -35,23 +35,9 @@ def sphere_scene(rho, res=8):
 
 def sphere_mesh(rho, n_theta=12, n_phi=24):
     """A closed UV sphere of radius 1 with inward-facing triangles."""
-    verts = [[0, 0, 1], [0, 0, -1]]
-    for i in range(1, n_theta):
-        th = np.pi * i / n_theta
-        for j in range(n_phi):
-            ph = 2 * np.pi * j / n_phi
-            verts.append([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
-    ring = lambda i, j: 2 + (i - 1) * n_phi + j % n_phi   # noqa: E731
-    faces = []
-    for j in range(n_phi):
-        faces.append([0, ring(1, j), ring(1, j + 1)])
-        faces.append([1, ring(n_theta - 1, j + 1), ring(n_theta - 1, j)])
-    for i in range(1, n_theta - 1):
-        for j in range(n_phi):
-            a, b, c, d = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
-            faces += [[a, c, b], [b, c, d]]
-    verts = np.array(verts, dtype=np.float32)
-    faces = np.array(faces, dtype=np.uint32)[:, ::-1]      # reversed winding: normals inwards
+    verts, faces = uv_sphere(n_theta, n_phi)
+    verts = verts.astype(np.float32)
+    faces = faces[:, ::-1]                                  # reversed winding: normals inwards
     props = mi.Properties()
     props['bsdf'] = mi.load_dict({'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': rho}})
     props['emitter'] = mi.load_dict({'type': 'area', 'radiance': {'type': 'rgb', 'value': LE}})

@@ -840,7 +840,7 @@ def test_sphere_emitter_sampling_irradiance(r, d):
     visible cap is sampled uniformly by area when (r/d)^2 < endpoints.SMALL_SPHERE."""
     from bdpt_jit.endpoints import EmitterTable
     scene = mi.load_dict({'type': 'scene', 'light': {'type': 'sphere', 'center': [0.0, float(d), 0.0], 'radius': r,
-                                                      'emitter': {'type': 'area', 'radiance': rgb_one()}}})
+                                                      'emitter': {'type': 'area', 'radiance': sc.rgb(1.0)}}})
     tab = EmitterTable(scene)
     n = 200_000
     rng = np.random.default_rng(7)
@@ -858,10 +858,6 @@ def test_sphere_emitter_sampling_irradiance(r, d):
     pdf2 = np.array(tab.pdf_direct_w(it, ds, dr.full(mi.Bool, True, n)))
     rel = np.abs(pdf2[ok] - np.array(ds.pdf)[ok]) / np.array(ds.pdf)[ok]
     assert rel.max() < 1e-3, f'sampled density vs pdf_direct_w: max relative difference {rel.max():.3g}'
-
-
-def rgb_one():
-    return {'type': 'rgb', 'value': [1.0, 1.0, 1.0]}
 
 
 def test_guard_connection_nearly_touching():
