@@ -36,13 +36,11 @@ if isinstance(_mi, Exception):
     raise _mi
 mi = _mi
 
-_register_error = None
-
-
 def register():
-    """Register ``bdpt`` for the active Mitsuba variant (``llvm_ad_rgb`` if none is active)."""
+    """Register ``bdpt`` for the active Mitsuba variant (``llvm_ad_rgb`` if none is active).
+    Raises, with what Dr.Jit reported, if no variant can be activated."""
     if mi.variant() is None:
-        mi.set_variant('llvm_ad_rgb')
+        set_variant_quietly('llvm_ad_rgb')
     from .integrator import BDPTIntegrator
     mi.register_integrator('bdpt', lambda props: BDPTIntegrator(props))
 
@@ -68,8 +66,8 @@ def _register_quietly():
 
 try:
     _register_quietly()
-except Exception as e:          # e.g. Dr.Jit's LLVM backend without libLLVM: report on use
-    _register_error = e
+except Exception:               # e.g. Dr.Jit's LLVM backend without libLLVM: register() says why
+    pass
 
 
 def __getattr__(name):

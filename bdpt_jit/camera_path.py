@@ -13,10 +13,9 @@ import drjit as dr
 import mitsuba as mi
 
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w, sample_bsdf, smooth_mask
-from .endpoints import AreaKinds, safe_div, sel
+from .endpoints import AreaKinds
+from .jitmath import pdf_w_to_a, safe_div
 from .roulette import roulette
-
-MIN_DIST2 = 2.0 ** -126   # smallest normal float32: 1 / MIN_DIST2 = 2^126 is finite
 
 
 class CameraTracer:
@@ -66,13 +65,8 @@ class CameraTracer:
         si_env.wi = -ray.d
         si_env.time = ray.time
         le = env.eval(si_env, escaped)
-        ds = dr.zeros(mi.DirectionSample3f)
-        ds.d = ray.d
-        ds.dist = mi.Float(dr.inf)
-        ds.emitter = mi.EmitterPtr(env)
-        p_sel = c.emitters.pdf_select(mi.EmitterPtr(env))
+        ds, pdf_emit_w = c.emitters.pdf_emit_w_env(env, prev, ray.d, escaped)
         pdf_direct_w = c.emitters.pdf_direct_w(prev, ds, escaped & (depth > 1))
-        pdf_emit_w = p_sel * c.emitters.pdf_disk * env.pdf_direction(prev, ds, escaped)
         # seen directly: no other strategy can sample it (light tracing cannot hit the pinhole)
         w = dr.select(depth == 1, 1.0, c.mis.weight_s0(d_vcm, d_vc, pdf_direct_w, pdf_emit_w))
         if c.layers is not None:
@@ -93,11 +87,7 @@ class CameraTracer:
         f, pdf_bsdf_w, pdf_rev_w = eval_camera_vertex(si, bsdf, ds.d, active, c.diffuse)
         k = c.emitters.kinds(ds.emitter)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
-        # per kind (endpoints.py): a surface point has a normal; a point light's discrete
-        # density is turned into the solid-angle form mis.weight_s1 takes; infinite emitters
-        # are directions already
-        cos_e = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)), mi.Float(1.0))
-        pdf_direct_w = sel(k.delta_pos, ds.pdf * dr.square(ds.dist), ds.pdf)
+        pdf_direct_w, cos_e = c.emitters.direct_terms(ds, k)
         cos_z = dr.abs(dr.dot(si.n, ds.d))
         w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z, pdf_rev_w,
                             emitter_is_delta=k.delta)
@@ -117,13 +107,12 @@ class CameraTracer:
         y = v.interaction(c.time)
         to_y = y.p - si.p
         dist2 = dr.squared_norm(to_y)
-        # 1/dist2 must be finite: vertices ~1e-19 apart give a subnormal dist2 whose inverse
-        # overflows (a NaN once the power weight, 0 there, multiplies it)
-        ok &= dist2 > MIN_DIST2
-        d = to_y * dr.rsqrt(dr.select(ok, dist2, 1.0))
+        d = to_y * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0))
         f_c, pdf_c_w, pdf_c_rev_w = eval_camera_vertex(si, bsdf, d, ok, c.diffuse)
         f_l, pdf_l_w, pdf_l_rev_w, ok_l = eval_light_vertex(y, v.bsdf, -d, ok, c.exact_adjoint, c.diffuse)
         contrib = beta * f_c * f_l * v.beta * safe_div(1.0, dist2)
+        # The guard where the contribution is formed: vertices ~1e-19 apart give a subnormal
+        # dist2 whose inverse overflows (and a NaN once the power weight, 0 there, multiplies it)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
         blocked = c.scene.ray_test(si.spawn_ray_to(y.p), ok)
         if c.stats is not None:
@@ -131,8 +120,8 @@ class CameraTracer:
         ok &= ~blocked
         w = c.mis.weight_connect(
             v.d_vcm, v.d_vc, d_vcm, d_vc,
-            pdf_c_w * safe_div(dr.abs(dr.dot(y.n, d)), dist2),
-            pdf_l_w * safe_div(dr.abs(dr.dot(si.n, d)), dist2),
+            pdf_w_to_a(pdf_c_w, dr.dot(y.n, d), dist2),
+            pdf_w_to_a(pdf_l_w, dr.dot(si.n, d), dist2),
             pdf_l_rev_w, pdf_c_rev_w)
         if c.layers is not None:
             c.layers.add(v_depth + 1, depth + 1, film_pos, contrib * (w * c.inv_spp), contrib * c.inv_spp, ok)
@@ -142,13 +131,13 @@ class CameraTracer:
     def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None):
         """Sum of the connections of camera vertex ``si`` to the light subpath of its sample."""
         c = self.ctx
-        n_light, record, st_v = store.count, store.record, store.v   # read before the loop
+        n_light, record, st_v, slot_of = store.count, store.record, store.v, store.slot   # read before the loop
         # stored depths grow with j (depth_j >= j + 1): beyond j_end max_depth forbids all
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(depth + 1, c.max_depth_edges))
         L = mi.Color3f(0.0)
         j = mi.UInt32(0)
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
-            L += self.connect_one(record, st_v, j * c.n_opaque + idx, si, bsdf, depth, beta, d_vcm, d_vc,
+            L += self.connect_one(record, st_v, slot_of(j, idx), si, bsdf, depth, beta, d_vcm, d_vc,
                                   active, film_pos, level=j)
             j += 1
         return L
@@ -188,16 +177,15 @@ class CameraTracer:
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         L = mi.Color3f(0.0)
-        if c.use_env:
+        if c.strategies.trace_env:
             L += self.strategy_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
                                    mi.Float(0), mi.Float(0), ~si.is_valid() & (max_edges >= 1), film_pos)
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
         pdf_cam_w = c.camera.pdf_w(ray.d)
         d_vcm, d_vc = mis.camera_init(pdf_cam_w)
-        # Mitsuba starts camera rays on the near-clip plane: the first edge's length is measured
-        # from the pinhole (lens point), as every other strategy measures it.
-        dist2_cam = dr.squared_norm(si.p - c.camera.lens_point(ray))
+        # the first edge's length as every other strategy measures it (from the lens point)
+        dist2_cam = c.camera.first_edge_dist2(ray, si.p)
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
@@ -206,18 +194,18 @@ class CameraTracer:
             bsdf = si.bsdf(ray)
 
             # ---------------- s = 0: the camera subpath hits an emitter ----------------
-            if dr.hint(c.use_s0, mode='scalar'):
+            if dr.hint(c.strategies.trace_s0, mode='scalar'):
                 L += self.strategy_s0(si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos)
 
             active &= depth + 1 <= max_edges          # every strategy below adds an edge
             smooth = active & smooth_mask(bsdf, c.diffuse)
 
             # ---------------- s = 1: emitter sampling ----------------
-            if dr.hint(c.use_s1, mode='scalar'):
+            if dr.hint(c.strategies.trace_s1, mode='scalar'):
                 L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos)
 
             # ---------------- s >= 2: connect to the light subpath ----------------
-            if dr.hint(c.use_connect, mode='scalar'):
+            if dr.hint(c.strategies.trace_connect, mode='scalar'):
                 L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos)
 
             # ---------------- continue the walk ----------------
@@ -227,7 +215,7 @@ class CameraTracer:
             si = scene.ray_intersect(ray, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
-            if dr.hint(c.use_env, mode='scalar'):
+            if dr.hint(c.strategies.trace_env, mode='scalar'):
                 L += self.strategy_env(ray, prev, depth + 1, beta, d_vcm, d_vc,
                                        active & ~si.is_valid(), film_pos)
             active &= si.is_valid()

@@ -1,5 +1,6 @@
-"""Subpath endpoints: where light subpaths start (every emitter kind Mitsuba ships) and how
-camera subpaths are weighted, with every density the MIS needs. Mitsuba does not expose the
+"""Light subpath endpoints: where light subpaths start (every emitter kind bdpt renders), how
+emitters are sampled from a camera vertex (s=1) and every emission density the MIS needs. Every
+rule that depends on the emitter kind is here; the camera's side is cameras.py. Mitsuba does not expose the
 emission densities (``Emitter.pdf_position`` raises, and no emitter gives the pdf of the
 direction ``sample_ray`` chooses), so they are computed here, per emitter kind, in one place:
 
@@ -22,23 +23,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-INV_PI = 1.0 / dr.pi
+from .jitmath import INV_PI, finite_or_zero, neg, pdf_w_to_a, safe_div, sel
+
 # (r/d)^2 below which a sphere emitter's visible cap is sampled by area (EmitterTable.small_sphere);
 # above it Mitsuba's cone sampling is exact to ~1e-5 in float32
 SMALL_SPHERE = 1e-2
-
-
-def safe_div(a, b):
-    """a / b, and 0 where b is 0 (a density or a squared distance that vanished)."""
-    return dr.select(b != 0, a / dr.select(b != 0, b, 1.0), 0.0)
-
-
-def finite_or_zero(pdf):
-    """An emitter-sampling density that Mitsuba reports as +inf or NaN where its sampler cannot
-    produce the point (e.g. the cone of a sphere light of radius 1e-4, whose cos_max rounds to
-    1: ``pdf_emitter_direction`` is +inf while ``sample_emitter_direction`` returns weight 0).
-    That strategy cannot sample the path: its density is 0."""
-    return dr.select(dr.isfinite(pdf), pdf, 0.0)
 
 
 class Kinds:
@@ -68,22 +57,6 @@ class Kinds:
 class AreaKinds:
     """Kinds of an emitter that a camera ray hit: always an area emitter."""
     area, delta_pos, delta_dir, infinite, env, delta = True, False, False, False, False, False
-
-
-def neg(mask):
-    """Logical not of a per-lane mask or a Python bool (``~True`` is -2 in Python)."""
-    if mask is True or mask is False:
-        return not mask
-    return ~mask
-
-
-def sel(mask, a, b):
-    """dr.select that also takes a Python bool mask (kinds absent from the scene)."""
-    if mask is True:
-        return a
-    if mask is False:
-        return b
-    return dr.select(mask, a, b)
 
 
 class EmitterTable:
@@ -264,6 +237,14 @@ class EmitterTable:
             out = sel(k.env, pdf_w, out)
         return out
 
+    @staticmethod
+    def first_edge_dist2(e, si1):
+        """Squared length of the first edge y0 -> y1 as the area density of y1 needs it: 1 for
+        infinite emitters, whose y0 is a direction (solid-angle measure)."""
+        if e.kinds.infinite is False:
+            return dr.square(si1.t)
+        return dr.select(e.kinds.infinite, 1.0, dr.square(si1.t))
+
     # ------------------------------------------------------------------ emitter sampling (s=1)
     def small_sphere(self, emitter, ref_p):
         """Lanes whose emitter is a sphere of radius r seen from ``ref_p`` at a distance d with
@@ -340,7 +321,28 @@ class EmitterTable:
     @staticmethod
     def per_area(pdf_w, ds):
         """A density per unit solid angle at the reference point, per unit area at ``ds.p``."""
-        return pdf_w * dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist))
+        return pdf_w_to_a(pdf_w, dr.dot(ds.n, ds.d), dr.square(ds.dist))
+
+    @staticmethod
+    def direct_terms(ds, k):
+        """For emitter sampling's weight (mis.weight_s1): the density per unit solid angle at the
+        camera vertex (a point light's discrete density times d^2, the solid-angle form of its
+        'area' density) and |cos| at the emitter point (1 for points and infinite emitters,
+        which have no surface normal)."""
+        cos_e = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)), mi.Float(1.0))
+        pdf_direct_w = sel(k.delta_pos, ds.pdf * dr.square(ds.dist), ds.pdf)
+        return pdf_direct_w, cos_e
+
+    def pdf_emit_w_env(self, env, ref_it, d, active):
+        """Emission density of the environment emitter ``env`` in the direction ``-d`` (``d``:
+        towards the environment): its choice, the disk facing the scene and its direction
+        density. Returns (DirectionSample3f towards it, pdf_emit_w)."""
+        ds = dr.zeros(mi.DirectionSample3f)
+        ds.d = d
+        ds.dist = mi.Float(dr.inf)
+        ds.emitter = mi.EmitterPtr(env)
+        p_sel = self.pdf_select(mi.EmitterPtr(env))
+        return ds, p_sel * self.pdf_disk * env.pdf_direction(ref_it, ds, active)
 
     def pdf_emit_w_at(self, emitter, ds, d_out, k=None):
         """Emission density (choice, position, direction ``d_out`` leaving the emitter) of the
@@ -370,57 +372,3 @@ class Emission:
     """A light subpath's start (see EmitterTable.sample_emission)."""
     emitter = kinds = p_sel = ps = si_e = d = origin = n_e = cos_e = None
     pdf_emit_w = pdf_light_a = beta = active = ray = None
-
-
-def direction_sample_at(si_e: mi.SurfaceInteraction3f, ps: mi.PositionSample3f, ref_p, emitter):
-    """A DirectionSample3f for the emitter point ``ps`` as seen from ``ref_p``."""
-    ds = mi.DirectionSample3f(ps)
-    d = ps.p - ref_p
-    dist = dr.norm(d)
-    ds.d = d / dr.maximum(dist, 1e-30)
-    ds.dist = dist
-    ds.emitter = emitter
-    ds.delta = mi.Bool(False)
-    return ds
-
-
-class Camera:
-    """Perspective and thin-lens cameras: the density of a camera subpath's first direction.
-
-    The film position is uniform over the crop window, so the direction from the pinhole (or
-    from the sampled lens point, through the matching point of the focus plane) has the
-    density We(omega) = 1 / (A cos^3 theta) per unit solid angle, A the crop's area on the image
-    plane at distance 1 and theta the angle to the optical axis. The lens point's own density
-    is the same in every strategy (camera rays and splats sample it alike) and cancels in the
-    MIS ratios. Mitsuba normalises the importance over the crop too, so splat values come from
-    ``sensor.sample_direction`` unchanged."""
-
-    def __init__(self, sensor: mi.Sensor):
-        self.sensor = sensor
-        film = sensor.film()
-        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
-        self.crop_size = mi.ScalarVector2f(film.crop_size())
-        params = mi.traverse(sensor)
-        x_fov = float(dr.ravel(params['x_fov']).numpy()[0])
-        w, h = (float(v) for v in film.size())
-        cw, ch = (float(v) for v in film.crop_size())
-        tan_x = math.tan(math.radians(x_fov) / 2)
-        area = (2 * tan_x) * (2 * tan_x * h / w) * (cw * ch) / (w * h)
-        self.inv_area = 1.0 / area
-        m = np.array(sensor.world_transform().matrix).reshape(4, 4)
-        axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
-        self.axis = mi.Vector3f(*[float(x) for x in axis])
-        self.near_clip = float(sensor.near_clip())
-        # the pinhole (sample_ray's origins lie on the near-clip plane instead)
-        self.position = mi.Point3f(*[float(x) for x in m[:3, 3]])
-
-    def pdf_w(self, d):
-        """We(omega) of the unit direction ``d`` leaving the camera (pinhole or lens point)."""
-        c = dr.dot(d, self.axis)
-        return dr.select(c > 0, self.inv_area * dr.rcp(dr.select(c > 0, c * c * c, 1.0)), 0.0)
-
-    def lens_point(self, ray):
-        """The pinhole or lens point a camera ray left from: Mitsuba starts camera rays on the
-        near-clip plane, near_clip / cos(theta) along the ray."""
-        c = dr.dot(ray.d, self.axis)
-        return ray.o - ray.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))

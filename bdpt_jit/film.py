@@ -13,7 +13,6 @@ class FilmAccumulator:
     def __init__(self, film: mi.Film):
         self.film = film
         film.prepare([])
-        self.base_channels = film.base_channels_count() if hasattr(film, 'base_channels_count') else None
         self.cam = film.create_block()
         self.lt = film.create_block(normalize=True)
         self.lt.set_coalesce(False)

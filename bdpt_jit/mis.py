@@ -1,7 +1,8 @@
 """Multiple importance sampling weights of every (s,t) strategy, computed recursively.
 
-This module is the only place where MIS weights are formed. It follows the seed paper's
-eqs. (17)-(22) (Vlnas, after Veach and Georgiev): the weight of strategy (s,t) is
+This module is the only place where MIS weights are formed. Tags ``[eq. N]`` refer to the seed
+paper, M. Vlnas, "Bidirectional Path Tracing" (Brno University of Technology), eqs. (17)-(22),
+after Veach and Georgiev: the weight of strategy (s,t) is
 
     w_{s,t} = 1 / (w_light + 1 + w_camera)                                          (eq. 20)
 
@@ -20,7 +21,7 @@ power (beta=2), balance (beta=1) and uniform (beta=0, with h(0)=0) weightings: h
 multiplicative, h(ab) = h(a) h(b), for all three.
 
 Densities carry their measure in their names: ``pdf_w`` per unit solid angle, ``pdf_a`` per
-unit area. Tags ``[eq. N]`` refer to the seed paper's equations.
+unit area.
 
 Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
@@ -34,19 +35,23 @@ Conventions for the strategies (s light vertices, t camera vertices, endpoints c
 
 import drjit as dr
 
+from .strategies import StrategySet
+
 
 class MIS:
-    """Heuristic and strategy set. ``kind``: power | balance | uniform; ``technique``:
-    bdpt | pt | lt. All methods are plain arithmetic on Dr.Jit arrays (or Python floats), so
-    they trace into any kernel, symbolic or evaluated, and differentiate."""
+    """Heuristic and strategy set. ``kind``: power | balance | uniform; ``strategies``: a
+    strategies.StrategySet (or a technique name, bdpt | pt | lt, for its full set): a weight
+    sums the densities of the families it offers. All methods are plain arithmetic on Dr.Jit
+    arrays (or Python floats), so they trace into any kernel, symbolic or evaluated, and
+    differentiate."""
 
-    def __init__(self, kind: str = 'power', technique: str = 'bdpt'):
+    def __init__(self, kind: str = 'power', strategies='bdpt'):
         if kind not in ('power', 'balance', 'uniform'):
             raise ValueError(f"mis must be power, balance or uniform, got {kind!r}")
-        if technique not in ('bdpt', 'pt', 'lt'):
-            raise ValueError(f"technique must be bdpt, pt or lt, got {technique!r}")
+        if isinstance(strategies, str):
+            strategies = StrategySet(strategies)
         self.kind = kind
-        self.technique = technique
+        self.s = strategies
 
     # ------------------------------------------------------------------ heuristic
     def h(self, x):
@@ -61,8 +66,9 @@ class MIS:
     # Camera subpath start. The camera samples z1 with the density We per unit solid angle.
     def camera_init(self, pdf_cam_w):
         """(d_vcm, d_vc) at the camera vertex z0, before the first hit."""
-        if self.technique == 'pt':
-            # No light tracing: nothing competes with s=0 at the first hit.
+        if not self.s.splats:
+            # No light tracing (pt, or a camera no light path reaches): nothing competes with
+            # s=0 at the first hit.
             return 0.0 * pdf_cam_w, 0.0 * pdf_cam_w
         d_vcm = self.h(1.0 / pdf_cam_w)                     # [eq. 22] vc_0 = 1 / p->_0
         d_vc = 0.0 * pdf_cam_w                              # [eq. 22] no strategy behind z0
@@ -113,10 +119,10 @@ class MIS:
         """Camera subpath hits an emitter (s=0). ``pdf_direct_a``: emitter sampling density of the
         hit point (per unit area; for the first hit the light subpath's position density);
         ``pdf_emit_w``: light subpath's density of emitting towards the previous vertex."""
-        if self.technique == 'lt':
+        if not self.s.hits:
             return 0.0 * d_vcm
         w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1
-        if self.technique == 'bdpt':
+        if self.s.connections:
             w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
         return 1.0 / (1.0 + w_camera)                       # [eq. 20] w_light = 0
 
@@ -128,12 +134,12 @@ class MIS:
         ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``, ``cos_z``:
         |cos| at the emitter point (1 for point and infinite emitters) and at z; ``pdf_rev_w``:
         z's BSDF density of its incoming direction given the emitter direction."""
-        if self.technique == 'lt':
+        if not self.s.direct:
             return 0.0 * d_vcm
         w_light = self.h(pdf_bsdf_w / pdf_direct_w)                               # [eq. 20] strategy s=0
         if emitter_is_delta is not False:
             w_light = dr.select(emitter_is_delta, 0.0, w_light)                    # [eq. 20] p_0 = 0
-        if self.technique == 'pt':
+        if not self.s.connections:
             return 1.0 / (w_light + 1.0)                    # [eq. 20] w_camera = 0
         w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22]
                     * (d_vcm + d_vc * self.h(pdf_rev_w)))
@@ -146,7 +152,7 @@ class MIS:
         ``pdf_light_to_cam_a``: y's BSDF density of z (per unit area at z);
         ``pdf_light_rev_w``: y's density of its incoming direction given the direction to z;
         ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y."""
-        if self.technique != 'bdpt':
+        if not self.s.connections:
             return 0.0 * l_vcm
         w_light = self.h(pdf_cam_to_light_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))    # [eq. 21, 22]
         w_camera = self.h(pdf_light_to_cam_a) * (c_vcm + c_vc * self.h(pdf_cam_rev_w))     # [eq. 21, 22]
@@ -155,18 +161,18 @@ class MIS:
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
         """Light vertex y_{s-1} (s>=2) connected to the camera (t=1). ``pdf_cam_a``: density of
         the camera sampling y (We converted to area at y)."""
-        if self.technique == 'pt':
+        if not self.s.splats:
             return 0.0 * l_vcm
-        if self.technique == 'lt':
-            return 1.0 + 0.0 * l_vcm
+        if not (self.s.hits or self.s.direct or self.s.connections):
+            return 1.0 + 0.0 * l_vcm                        # light tracing alone (lt)
         w_light = self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
         return 1.0 / (w_light + 1.0)                                             # [eq. 20] w_camera = 0
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):
         """The emitter vertex y0 splatted to the camera (s=1, t=1); the other strategy for a
         one-edge path is s=0 (the camera ray hits the emitter)."""
-        if self.technique == 'pt':
+        if not self.s.splats:
             return 0.0 * pdf_cam_a
-        if self.technique == 'lt':
-            return 1.0 + 0.0 * pdf_cam_a
+        if not self.s.hits:
+            return 1.0 + 0.0 * pdf_cam_a                    # light tracing alone (lt)
         return 1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a))  # [eq. 20]

@@ -121,12 +121,3 @@ def markdown_table() -> str:
     for p in PARAMS:
         rows.append(f'| `{p.name}` | {p.type_name} | {p.default_text} | {p.meaning} |')
     return '\n'.join(rows)
-
-
-def rst_table() -> str:
-    lines = []
-    for p in PARAMS:
-        lines.append(f' * - {p.name}')
-        lines.append(f'   - |{p.type_name}|')
-        lines.append(f'   - {p.meaning} (Default: {p.default_text})')
-    return '\n'.join(['.. pluginparameters::', ''] + lines)

@@ -1,0 +1,94 @@
+"""Cameras: what the strategies need to know of the sensor that starts every camera subpath.
+A new camera is one subclass of ``CameraModel`` registered in ``CAMERAS`` (scene_check reads
+the supported sensors from there), plus its agreement test.
+
+The interface:
+- ``pdf_w(d)``: the density We(omega) per unit solid angle of the first direction ``d``;
+- ``lens_point(ray)``: where the first edge starts (its length enters the first vertex's area
+  density: ``first_edge_dist2``);
+- ``reachable``: whether a light vertex can be connected to the camera (t=1 strategies); a
+  camera that no light path can reach (a delta direction, e.g. orthographic) sets it False
+  and the MIS weights leave those strategies out (strategies.StrategySet).
+Light-tracing splats take their value from ``sensor.sample_direction`` unchanged."""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+class CameraModel:
+    plugin = None               # the name scene files use
+    mitsuba_class = None        # Mitsuba's class name (sensor.class_name())
+    reachable = True
+
+    def __init__(self, sensor: mi.Sensor):
+        self.sensor = sensor
+        film = sensor.film()
+        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
+        self.crop_size = mi.ScalarVector2f(film.crop_size())
+
+    def pdf_w(self, d):
+        raise NotImplementedError
+
+    def lens_point(self, ray):
+        raise NotImplementedError
+
+    def first_edge_dist2(self, ray, p):
+        """Squared length of the first edge, from the lens point to the first vertex ``p``."""
+        return dr.squared_norm(p - self.lens_point(ray))
+
+
+class Perspective(CameraModel):
+    """A pinhole. The film position is uniform over the crop window, so the direction from the
+    pinhole has the density We(omega) = 1 / (A cos^3 theta) per unit solid angle, A the crop's
+    area on the image plane at distance 1 and theta the angle to the optical axis. Mitsuba
+    normalises the importance over the crop too."""
+    plugin, mitsuba_class = 'perspective', 'PerspectiveCamera'
+
+    def __init__(self, sensor: mi.Sensor):
+        super().__init__(sensor)
+        film = sensor.film()
+        x_fov = float(dr.ravel(mi.traverse(sensor)['x_fov']).numpy()[0])
+        w, h = (float(v) for v in film.size())
+        cw, ch = (float(v) for v in film.crop_size())
+        tan_x = math.tan(math.radians(x_fov) / 2)
+        area = (2 * tan_x) * (2 * tan_x * h / w) * (cw * ch) / (w * h)
+        self.inv_area = 1.0 / area
+        m = np.array(sensor.world_transform().matrix).reshape(4, 4)
+        axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        self.axis = mi.Vector3f(*[float(x) for x in axis])
+        self.near_clip = float(sensor.near_clip())
+        # the pinhole (sample_ray's origins lie on the near-clip plane instead)
+        self.position = mi.Point3f(*[float(x) for x in m[:3, 3]])
+
+    def pdf_w(self, d):
+        """We(omega) of the unit direction ``d`` leaving the pinhole (or lens point)."""
+        c = dr.dot(d, self.axis)
+        return dr.select(c > 0, self.inv_area * dr.rcp(dr.select(c > 0, c * c * c, 1.0)), 0.0)
+
+    def lens_point(self, ray):
+        """Mitsuba starts camera rays on the near-clip plane, near_clip / cos(theta) along the
+        ray from the pinhole."""
+        c = dr.dot(ray.d, self.axis)
+        return ray.o - ray.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))
+
+
+class ThinLens(Perspective):
+    """A thin lens: the direction from the sampled lens point through the matching point of
+    the focus plane has the pinhole's density We(omega); the lens point's own density is the
+    same in every strategy (camera rays and splats sample it alike) and cancels in the MIS
+    ratios. Rays start on the near-clip plane as the pinhole's do."""
+    plugin, mitsuba_class = 'thinlens', 'ThinLensCamera'
+
+
+CAMERAS = {cls.plugin: cls for cls in (Perspective, ThinLens)}
+
+
+def camera_for(sensor: mi.Sensor) -> CameraModel:
+    name = str(sensor.class_name())
+    for cls in CAMERAS.values():
+        if cls.mitsuba_class == name:
+            return cls(sensor)
+    raise ValueError(f"bdpt: no camera model for sensor class {name!r}")

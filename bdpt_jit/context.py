@@ -1,0 +1,74 @@
+"""What the kernels of one render are specialised to. Plain Python values here become
+trace-time constants; Dr.Jit values (the opaque scales) are kernel inputs, so changing them
+does not recompile anything.
+
+A plain class on purpose: Dr.Jit traverses dataclasses, and one referenced inside a loop
+becomes loop state. Per-pass values (the pass size, the light-vertex storage) are not here:
+they live in store.LightStore and are passed to the tracers."""
+
+import drjit as dr
+import mitsuba as mi
+
+from .cameras import camera_for
+from .connect import DiffuseTable
+from .endpoints import EmitterTable
+from .film import FilmAccumulator, StrategyLayers
+from .mis import MIS
+from .passes import UNBOUNDED
+from .scene_check import VertexNeeds, scene_has_delta_bsdf, scene_perturbs_normals
+from .stats import RayStats
+from .store import record_type
+from .strategies import StrategySet
+
+
+def diffuse_table(scene):
+    """connect.DiffuseTable of the scene, or None if it covers no BSDF."""
+    table = DiffuseTable(scene)
+    return table if table.any else None
+
+
+class Context:
+    """Fields (all set here, none added later):
+
+    scene, sensor      the Mitsuba scene and the sensor rendered
+    camera             cameras.CameraModel of the sensor
+    emitters           endpoints.EmitterTable: emitter choice and emission densities
+    strategies         strategies.StrategySet: what exists and what is traced
+    mis                mis.MIS: the weights, for the heuristic and the strategy set
+    time               the sensor's shutter-open time (every ray's time)
+    max_depth_edges    longest path in edges (passes.UNBOUNDED for max_depth = -1)
+    unbounded          max_depth = -1: the light-vertex storage grows as needed
+    rr_depth           edges from which Russian roulette may end a subpath
+    hide_emitters      directly visible emitters hidden
+    has_delta          the scene has a BSDF with a delta lobe (delta handling traced)
+    exact_adjoint      a BSDF perturbs its shading frame (connect.adjoint_eval)
+    record             the light-vertex record type (store.record_type)
+    diffuse            connect.DiffuseTable, or None when no BSDF is a constant diffuse
+    inv_spp            1 / spp, opaque: camera-sample contributions to the strategy layers
+    splat_scale        the light image's scale per splat (film.FilmAccumulator.splat_scale), opaque
+    layers             film.StrategyLayers, or None (parameter strategy_images)
+    stats              stats.RayStats, or None (parameter statistics)
+    """
+
+    def __init__(self, scene, sensor, settings, spp):
+        self.scene, self.sensor = scene, sensor
+        self.camera = camera_for(sensor)
+        self.emitters = EmitterTable(scene)
+        self.unbounded = settings['max_depth'] < 0
+        self.max_depth_edges = UNBOUNDED if self.unbounded else settings['max_depth']
+        self.hide_emitters = settings['hide_emitters']
+        self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
+                                                self.camera, self.hide_emitters)
+        self.mis = MIS(settings['mis'], self.strategies)
+        self.time = sensor.shutter_open()
+        self.rr_depth = settings['rr_depth']
+        self.has_delta = scene_has_delta_bsdf(scene)
+        self.exact_adjoint = scene_perturbs_normals(scene)
+        self.record = record_type(VertexNeeds(scene))
+        self.diffuse = diffuse_table(scene)
+        # opaque: literals would be baked into the kernels and recompile them for every spp
+        self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
+        self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))
+        self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
+                       if settings['strategy_images'] else None)
+        self.stats = RayStats() if settings['statistics'] else None

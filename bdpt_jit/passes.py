@@ -1,0 +1,99 @@
+"""How a render is cut into passes (kernel launches), the seed of each pass, and the hooks
+through which a caller follows a render and stops it between passes.
+
+One seed scheme serves every caller: the plugin's own pass loop and the command's
+``--time`` loop take the seed of pass ``i`` from ``pass_seed``."""
+
+import drjit as dr
+import mitsuba as mi
+
+UNBOUNDED = 0x3FFFFFFF          # max_depth = -1, in edges
+BYTES_PER_LIGHT_VERTEX = 128    # store.FIELDS: at most 32 words
+BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
+MEMORY_BUDGET = 1 << 30         # automatic samples_per_pass keeps the storage near this
+
+
+def pass_seed_value(seed: int, i: int) -> int:
+    """Seed of pass ``i`` of a render with ``seed``: ``(seed * 1000003 + i * 7919) mod 2^32``."""
+    return (int(seed) * 1000003 + int(i) * 7919) & 0xFFFFFFFF
+
+
+def pass_seed(seed, i):
+    """``pass_seed_value`` as the kernels take it. ``seed`` is a Python int or a ``mi.UInt32``
+    (Mitsuba's render API takes both; its own wrappers, the ``aov`` integrator and
+    ``mi.render`` with parameters, pass the latter). The result is opaque: a literal would be
+    baked into the kernels and recompile them for every seed."""
+    if isinstance(seed, int):
+        return dr.opaque(mi.UInt32, pass_seed_value(seed, i))
+    s = mi.UInt32(seed)
+    if dr.width(s) != 1:
+        raise ValueError(f"bdpt: the seed must be one integer, got an array of {dr.width(s)}")
+    out = s * 1000003 + i * 7919                     # 32-bit wrap-around, as the int form
+    dr.make_opaque(out)
+    return out
+
+
+def light_capacity(strategies, max_depth_edges, unbounded):
+    """Levels of light-vertex storage a pass allocates first (store.LightStore)."""
+    if not strategies.trace_connect:
+        return 0
+    return 8 if unbounded else max_depth_edges - 2
+
+
+def plan_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
+    """Split spp x pixels samples into passes of whole pixels: yields (spp_in_pass,
+    pixel_start, pixel_count). ``samples_per_pass``: the parameter (None: from the memory
+    budget)."""
+    budget = samples_per_pass or max(MEMORY_BUDGET // bytes_per_sample, 1)
+    if budget >= n_pixels:
+        spp_pass = max(1, min(spp, budget // n_pixels))
+        done = 0
+        while done < spp:
+            k = min(spp_pass, spp - done)
+            yield k, 0, n_pixels
+            done += k
+        return
+    for _ in range(spp):
+        for start in range(0, n_pixels, budget):
+            yield 1, start, min(budget, n_pixels - start)
+
+
+def count_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
+    budget = samples_per_pass or max(MEMORY_BUDGET // bytes_per_sample, 1)
+    if budget >= n_pixels:
+        spp_pass = max(1, min(spp, budget // n_pixels))
+        return -(-spp // spp_pass)
+    return spp * -(-n_pixels // budget)
+
+
+class RenderHooks:
+    """What a caller may attach to a ``bdpt`` integrator (``integrator.hooks``) to follow a
+    render and stop it. Both are called between passes, never inside a kernel:
+
+    - ``on_pass(samples_done, samples_total)`` after each finished pass;
+    - ``should_stop()`` before each pass after the first: True ends the render there, and the
+      finished passes are developed as a render of that many samples (the light image
+      rescaled), with ``last_render_info['interrupted']`` set.
+
+    A Ctrl-C (KeyboardInterrupt) during a pass after the first has the same effect."""
+
+    def __init__(self, on_pass=None, should_stop=None):
+        self.on_pass = on_pass
+        self.should_stop = should_stop
+
+    def passed(self, done, total):
+        if self.on_pass is not None:
+            self.on_pass(done, total)
+
+    def stop(self):
+        return self.should_stop is not None and bool(self.should_stop())
+
+
+def caused_by_interrupt(exc):
+    """A KeyboardInterrupt, or an error raised because of one (Ctrl-C while Dr.Jit traces a
+    loop arrives as a RuntimeError caused by it)."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
