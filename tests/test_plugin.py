@@ -101,3 +101,23 @@ def test_readme_parameter_table_is_the_source_table():
     from bdpt_jit.params import markdown_table
     readme = open(os.path.join(os.path.dirname(os.path.dirname(__file__)), 'README.md')).read()
     assert markdown_table() in readme
+
+
+def test_seed_as_uint32_renders_the_int_seed():
+    """Mitsuba's render API takes an int or a ``mi.UInt32`` seed, and its own wrappers (the
+    ``aov`` integrator, ``mi.render`` with parameters) pass the latter: the same pixels."""
+    import numpy as np
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4})
+    a = np.array(mi.render(scene, integrator=integ, spp=2, seed=1))
+    b = np.array(mi.render(scene, integrator=integ, spp=2, seed=mi.UInt32(1)))
+    c = np.array(mi.render(scene, integrator=integ, spp=2, seed=2))
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_render_without_develop_is_refused_with_a_reason():
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
+    integ = mi.load_dict({'type': 'bdpt'})
+    with pytest.raises(NotImplementedError, match='develop=False'):
+        integ.render(scene, spp=1, develop=False)

@@ -6,7 +6,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import bdpt_jit.integrator as integrator_module
+import bdpt_jit.context as context_module
 
 
 def cornell(delta_sphere=False):
@@ -60,11 +60,11 @@ def test_short_max_depth_leaves_out_connections():
 def test_delta_handling_traced_only_when_the_scene_has_delta_bsdfs(monkeypatch):
     # through Mitsuba's BSDF calls: with the constant-diffuse table (all of this scene) the
     # sampled lobe is a constant and Dr.Jit folds the delta tests away either way
-    monkeypatch.setattr(integrator_module, '_diffuse_table', lambda s: None)
+    monkeypatch.setattr(context_module, 'diffuse_table', lambda s: None)
     scene = cornell()                                  # diffuse only
     ops_plain, _, info = traced_ops(scene, max_depth=5)
     assert info['delta_handling'] is False
-    monkeypatch.setattr(integrator_module, 'scene_has_delta_bsdf', lambda s: True)
+    monkeypatch.setattr(context_module, 'scene_has_delta_bsdf', lambda s: True)
     ops_forced, _, info_f = traced_ops(scene, max_depth=5)
     assert info_f['delta_handling'] is True
     assert ops_plain < ops_forced, (ops_plain, ops_forced)
@@ -97,7 +97,7 @@ def test_light_vertex_record_drops_only_unread_fields(variant, monkeypatch):
     VertexNeeds): with the same seed the image equals the one rendered with every field stored
     (relative 1e-4 of the mean: the reconstructed frames differ by rounding), and each field
     appears exactly in the scenes that need it."""
-    from bdpt_jit.light_path import StoredVertex
+    from bdpt_jit.store import StoredVertex
     d = _shapes_scene()
     want = {'n': False, 's': False, 'uv': False, 'depth': False}
     if variant == 'smooth_mesh':      # a mesh with interpolated normals: n_s != n
@@ -120,7 +120,7 @@ def test_light_vertex_record_drops_only_unread_fields(variant, monkeypatch):
     fields = integ.last_render_info['light_vertex_fields']
     for k, need in want.items():
         assert (k in fields) == need, f'{variant}: field {k} stored={k in fields}, needed={need} ({fields})'
-    monkeypatch.setattr(integrator_module, 'record_type', lambda needs: StoredVertex)
+    monkeypatch.setattr(context_module, 'record_type', lambda needs: StoredVertex)
     b = np.array(mi.render(scene, integrator=integ, spp=16, seed=4))
     assert integ.last_render_info['light_vertex_fields'] == list(StoredVertex.DRJIT_STRUCT)
     assert np.isfinite(a).all()
@@ -153,7 +153,7 @@ def test_constant_diffuse_bsdfs_without_virtual_calls(variant, monkeypatch):
         assert ctx.diffuse.everything == (variant == 'all_diffuse')
     a = np.array(mi.render(scene, integrator=integ, spp=16, seed=5))
     ops_a, _, _ = traced_ops(scene, max_depth=6)
-    monkeypatch.setattr(integrator_module, '_diffuse_table', lambda s: None)
+    monkeypatch.setattr(context_module, 'diffuse_table', lambda s: None)
     b = np.array(mi.render(scene, integrator=integ, spp=16, seed=5))
     ops_b, _, _ = traced_ops(scene, max_depth=6)
     assert np.isfinite(a).all()

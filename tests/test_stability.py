@@ -180,7 +180,7 @@ def test_finite(case, technique, mis):
     whose (r/d)^2 < 2^-24 (its cone pdf 1/(2 pi (1 - cos_max)) with cos_max rounded to 1);
     `mis.light_first_hit` made it d_vcm = inf, and in `mis.weight_connect`
     h(pdf_cam_to_light_a) = pdf^2 underflowed to 0: 0 * inf = NaN. Guard now: where the
-    density is computed, `endpoints.finite_or_zero` in `EmitterTable.pdf_direct_first_hit`,
+    density is computed, `jitmath.finite_or_zero` in `EmitterTable.pdf_direct_first_hit`,
     `EmitterTable.pdf_direct_a` and `CameraTracer.strategy_env` (test_guard_emitter_sampling_density_infinite)."""
     build, max_depth = CASES[case]
     img = render(build(), bdpt(technique, mis, max_depth), spp=16, seed=1)
@@ -293,7 +293,7 @@ def test_agreement(params):
     Needed fixes:
     - sphere_near_r0.0001 bdpt/power: NaN (test_finite) and -94% (0.0030 vs 0.0502): every
       strategy but s=1 was weighted against Mitsuba's infinite s=1 density while s=1 itself
-      returns weight 0, so the direct light was lost. Guard now: `endpoints.finite_or_zero`
+      returns weight 0, so the direct light was lost. Guard now: `jitmath.finite_or_zero`
       where the emitter-sampling density is computed (`EmitterTable.pdf_direct_first_hit`,
       `pdf_direct_a`, `CameraTracer.strategy_env`): s=1 cannot sample those paths.
     - negative_scale (every technique but pt): light subpaths died at every mirrored mesh or
@@ -382,7 +382,7 @@ def test_tiny_sphere_light_keeps_direct_light():
     `pdf_emitter_direction` is +inf there (cone with cos_max rounded to 1) while its
     `sample_emitter_direction` returns weight 0, so s=1 contributed nothing while every other
     strategy was weighted against an infinite s=1 density. Guard now: a non-finite
-    emitter-sampling density is 0 where it is computed (`endpoints.finite_or_zero` in
+    emitter-sampling density is 0 where it is computed (`jitmath.finite_or_zero` in
     `EmitterTable.pdf_direct_first_hit`, `EmitterTable.pdf_direct_a`): s=1 really cannot
     sample those paths."""
     r, h = 1e-4, 1.5001
@@ -651,10 +651,10 @@ def test_bsdf_sampling_edge_values(bsdf):
 @pytest.mark.parametrize('camera', ['perspective', 'thinlens', 'perspective_crop', 'perspective_1x1'])
 def test_sensor_sampling_edge_values(camera):
     """`sensor.sample_ray` with film and lens samples at 0, 0.5 and 1 - 2^-24; the camera
-    density `endpoints.Camera.pdf_w` and the pinhole `lens_point` of those rays; and
+    density `cameras.Perspective.pdf_w` and the pinhole `lens_point` of those rays; and
     `sensor.sample_direction` (the splat connection) from points in front of, beside and behind
     the camera and at the pinhole itself: finite, densities >= 0."""
-    from bdpt_jit.endpoints import Camera
+    from bdpt_jit.cameras import camera_for as Camera
     extra = {}
     if camera == 'thinlens':
         extra = dict(camera=dict(type='thinlens', aperture_radius=0.1, focus_distance=3.0))
@@ -752,10 +752,10 @@ def test_guard_adjoint_factor_zero_denominator():
 
 
 def test_guard_camera_density_behind_the_camera():
-    """`endpoints.Camera.pdf_w`: We = 1 / (A cos^3), guarded by `select(c > 0, ...)`. In the
+    """`cameras.Perspective.pdf_w`: We = 1 / (A cos^3), guarded by `select(c > 0, ...)`. In the
     closed box (camera inside) light vertices lie beside and behind the camera: the raw
     expression is negative or infinite there, and it feeds `mis.weight_t1` for every splat."""
-    from bdpt_jit.endpoints import Camera
+    from bdpt_jit.cameras import camera_for as Camera
     scene = load(sc.point_in_closed_box(8))
     cam = Camera(scene.sensors()[0])
     # light vertices: first hits of rays from the point light in every direction
@@ -808,7 +808,7 @@ def test_guard_emitter_sampling_density_infinite():
     emitter sampling, from Mitsuba's `scene.pdf_emitter_direction`. For a sphere light of
     radius 1e-4 seen from 1.5 it is +inf (Mitsuba's cone: cos_max rounds to 1), and it enters
     every MIS weight of the light subpath (`mis.light_first_hit`: d_vcm = inf; then
-    0 * inf = NaN in `weight_connect`). Needed a fix; the guard is now `endpoints.finite_or_zero`
+    0 * inf = NaN in `weight_connect`). Needed a fix; the guard is now `jitmath.finite_or_zero`
     in that function: the density comes out finite (0 where Mitsuba's sampling cannot produce
     the direction: its weight there is 0)."""
     from bdpt_jit.endpoints import EmitterTable
@@ -867,15 +867,14 @@ def test_guard_connection_nearly_touching():
     the weighted contribution must stay finite and fall with delta -- no spike, no NaN -- down
     to the vertices touching (delta = 0).
     Needed a fix: at delta = 1e-20, dist2 = 2e-40 is a subnormal float, so 1 / dist2 = inf,
-    the power-heuristic weight is 0, and inf * 0 = NaN. Guard now: `dist2 > MIN_DIST2`
-    (2^-126, so 1 / dist2 is finite) and a finite unweighted contribution, in `connect_one`. (Reaching it in a render needs both vertices within ~1e-19 of each other, i.e.
+    the power-heuristic weight is 0, and inf * 0 = NaN. Guard now: the unweighted contribution
+    must be finite where it is formed, in `connect_one` (one guard: the test fails without it). (Reaching it in a render needs both vertices within ~1e-19 of each other, i.e.
     coordinates that small: a corner at the origin hit exactly.)"""
     from bdpt_jit.camera_path import CameraTracer
-    from bdpt_jit.light_path import StoredVertex
+    from bdpt_jit.store import StoredVertex
     scene = load(sc.corner(8))
     integ = mi.load_dict(bdpt())
     ctx = integ.make_context(scene, scene.sensors()[0])
-    ctx.n_opaque = mi.UInt32(1)
     deltas = np.array([1e-1, 1e-3, 1e-6, 1e-10, 1e-15, 1e-19, 1e-20, 1e-22, 1e-30, 0.0], np.float32)
     n = len(deltas)
     si_c = scene.ray_intersect(mi.Ray3f(mi.Point3f(0.2 + 0 * deltas, 1.0, 0.3), mi.Vector3f(0, -1, 0)))  # face y = 0
