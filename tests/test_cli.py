@@ -18,6 +18,8 @@ import pytest
 
 import bdpt_jit
 from bdpt_jit import cli
+from bdpt_jit.cli import session
+from bdpt_jit.passes import RenderHooks, pass_seed_value
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORNELL = os.path.join(REPO, 'scenes', 'cornell-box.xml')
@@ -126,6 +128,20 @@ def test_time_passes_average_to_the_image(tmp_path):
     np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
 
 
+def test_time_with_mitsuba_integrator_uses_pass_seeds(tmp_path):
+    """--time with Mitsuba's integrators: mi.render calls of --pass-spp, pass i seeded with
+    passes.pass_seed_value(seed, i), the seed scheme of bdpt's own passes."""
+    out = tmp_path / 'path.exr'
+    r = run_cli(CORNELL, '-D', 'res=8', '--time', '0.001', '--pass-spp', '2', '--seed', '5', '--integrator', 'path',
+                '-q', '-o', str(out), *VARIANT)
+    assert r.returncode == 0, r.stderr
+    img, _, header = read_exr(out)
+    assert header['bdpt.passes'] == '1' and header['bdpt.spp'] == '2'
+    scene = mi.load_file(CORNELL, res='8', integrator='path')
+    ref = np.array(mi.render(scene, spp=2, seed=pass_seed_value(5, 0)))[:, :, :3]
+    np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
+
+
 def test_strategy_layers_sum_to_image(tmp_path):
     out = tmp_path / 'layers.exr'
     r = run_cli(CORNELL, '-D', 'res=16', '--spp', '4', '--max-depth', '5', '--strategies', '-q', '-o', str(out), *VARIANT)
@@ -141,6 +157,25 @@ def test_strategy_layers_sum_to_image(tmp_path):
     np.testing.assert_allclose(total, img, rtol=1e-4, atol=1e-5 * float(img.max()))
     # the strategies differ: the light-tracing (t=1) and camera (s=0) layers are not the same image
     assert not np.allclose(layer(ch, 's2_t1', 'weighted'), layer(ch, 's0_t3', 'weighted'))
+
+
+@pytest.mark.parametrize('budget', [['--spp', '8'], ['--time', '60', '--pass-spp', '1']], ids=['spp', 'time'])
+def test_interrupted_strategy_layers_sum_to_image(tmp_path, monkeypatch, budget):
+    """A --strategies render stopped after its first pass (as Ctrl-C stops it: bdpt's
+    should_stop hook says stop): the integrator scales its layers, like its image, to the
+    samples traced, and the command must not scale them again (it did, by spp asked / spp done)."""
+    monkeypatch.setattr(RenderHooks, 'stop', lambda self: True)    # asked before every pass after the first
+    out = tmp_path / 'cut.exr'
+    rc = cli.main(['render', CORNELL, '-D', 'res=16', *budget, '--samples-per-pass', '256', '--max-depth', '5',
+                   '--strategies', '-o', str(out), *VARIANT])     # in this process: the hook patched
+    assert rc == 130
+    img, ch, header = read_exr(out)
+    assert header['bdpt.interrupted'] == 'true'
+    assert header['bdpt.passes'] == '1' and header['bdpt.spp'] == '1'  # 256 samples: 1 spp of 16x16
+    names = header['bdpt.layers'].split()
+    total = sum(layer(ch, n, 'weighted') for n in names)
+    assert img.mean() > 0
+    np.testing.assert_allclose(total, img, rtol=1e-4, atol=1e-5 * float(img.max()))
 
 
 # ----------------------------------------------------------------------------- errors
@@ -250,7 +285,7 @@ def test_missing_libllvm_message(monkeypatch):
     monkeypatch.setenv('DRJIT_LIBLLVM_PATH', '/nonexistent/libLLVM.so')
     args = cli.build_parser().parse_args(['render', 'x.xml', '--variant', 'llvm_ad_rgb'])
     with pytest.raises(cli.CLIError) as e:
-        cli._init_variant(args)
+        session.init_variant(args)
     msg = str(e.value)
     assert 'libLLVM >= 16' in msg and 'apt-get install libllvm' in msg and '/nonexistent/libLLVM.so' in msg
     assert '\n' not in msg

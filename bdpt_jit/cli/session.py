@@ -1,0 +1,238 @@
+"""One ``bdpt-jit render``: the inputs checked, the Mitsuba variant started, the scene loaded,
+the integrator chosen, the render run (rendering.py), the files written and the summary printed."""
+
+import os
+import re
+import sys
+import tempfile
+import time
+
+from .args import DEFAULT_VARIANT, GPU_VARIANT, check_params, given_params, option_of, parse_defines
+from .errors import EXIT_INTERRUPTED, EXIT_OK, PROG, CLIError, error_text, scene_error
+from .outputs import output_paths, write_exr, write_png
+from .rendering import render
+from .summary import header, print_summary, statistics
+
+# Parameters of the table that Mitsuba's own integrators (path, ptracer, ...) also take
+SHARED_PARAMS = ('max_depth', 'rr_depth', 'hide_emitters')
+
+
+def cmd_render(args, guard):
+    """``bdpt-jit render``; returns the exit status. ``guard``: interrupts.InterruptGuard."""
+    t_wall = time.perf_counter()
+    defines = parse_defines(args.defines)
+    check_params(args)
+    if not os.path.exists(args.scene):
+        raise CLIError(f"scene file not found: {args.scene}")
+    if not os.path.isfile(args.scene):
+        raise CLIError(f"scene path is not a file: {args.scene}")
+    out, png = output_paths(args.scene, args.output)
+    if args.integrator != 'bdpt' and args.strategy_images:
+        raise CLIError(f"--strategies needs --integrator bdpt (not {args.integrator})")
+
+    variant = init_variant(args)
+    import mitsuba as mi
+    if args.quiet:
+        mi.set_log_level(mi.LogLevel.Error)         # Mitsuba's warnings too
+    import bdpt_jit
+    bdpt_jit.register()
+    scene = load_scene(mi, args.scene, defines, args.integrator)
+    if not scene.sensors():
+        raise CLIError(f"the scene has no sensor: {args.scene}")
+    integ, settings = make_integrator(args, scene)
+    is_bdpt = isinstance(integ, bdpt_jit.BDPTIntegrator)
+    if is_bdpt:
+        integ = prepare_bdpt(args, scene, integ)
+        settings = dict(integ.settings)
+
+    res = render(args, scene, integ, is_bdpt, guard)
+    img, layers = res.mean()
+    stats = statistics(args, res, settings, variant, args.scene, defines, time.perf_counter() - t_wall)
+    write_exr(out, img, header(stats), layers)
+    write_png(png, img)
+    if not args.quiet:
+        print_summary(stats, res, out, png)
+        sys.stdout.flush()
+    if res.interrupted:
+        print(f"{PROG}: interrupted: wrote the {res.spp:g} spp rendered so far"
+              + (f" (of {res.spp_requested})" if res.spp_requested else '') + f" to {out} and {png}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- variant
+class _CaptureStderr:
+    """Redirect the process's fd 2 (Dr.Jit prints its backend messages there, below Python)."""
+
+    def __enter__(self):
+        sys.stderr.flush()
+        self.saved = os.dup(2)
+        self.file = tempfile.TemporaryFile(mode='w+b')
+        os.dup2(self.file.fileno(), 2)
+        return self
+
+    def __exit__(self, *exc):
+        sys.stderr.flush()
+        os.dup2(self.saved, 2)
+        os.close(self.saved)
+        self.file.seek(0)
+        self.text = self.file.read().decode(errors='replace')
+        self.file.close()
+        return False
+
+
+def init_variant(args):
+    """Import Mitsuba, choose and set the variant; a missing libLLVM becomes one clear line."""
+    err = None
+    with _CaptureStderr() as cap:
+        import drjit as dr
+        import mitsuba as mi
+        variant = args.variant
+        if variant is None:
+            variant = DEFAULT_VARIANT
+            if GPU_VARIANT in mi.variants() and dr.has_backend(dr.JitBackend.CUDA):
+                variant = GPU_VARIANT
+        if variant in mi.variants():
+            try:
+                mi.set_variant(variant)
+            except Exception as e:                  # ImportError when the backend cannot start
+                err = e
+    if variant not in mi.variants():
+        raise CLIError(f"Mitsuba variant '{variant}' does not exist; the variants are "
+                       f"{', '.join(mi.variants())}")
+    if args.debug and cap.text.strip():
+        sys.stderr.write(cap.text)
+    if err is not None:
+        raise CLIError(_variant_error(variant, err, cap.text))
+    return variant
+
+
+def _variant_error(variant, err, captured):
+    msg = str(err)
+    if variant.startswith('llvm') and ('LLVM' in msg or 'libLLVM' in captured):
+        where = os.environ.get('DRJIT_LIBLLVM_PATH')
+        where = f" (DRJIT_LIBLLVM_PATH={where})" if where else ''
+        return (f"the LLVM backend could not be started: libLLVM >= 16 was not found{where}; "
+                f"install it (e.g. apt-get install libllvm19) or set DRJIT_LIBLLVM_PATH to its libLLVM.so")
+    if variant.startswith('cuda'):
+        return f"variant '{variant}' needs a CUDA GPU and driver: {error_text(err)}"
+    return f"Mitsuba variant '{variant}' cannot be used: {error_text(err)}"
+
+
+# ----------------------------------------------------------------------------- scene
+def load_scene(mi, path, defines, integrator):
+    """mi.load_file with the -D values. A scene whose integrator is a parameter (`$integrator`,
+    as the bundled scenes have) gets the requested one, with the scene's own settings."""
+    if 'integrator' not in defines:
+        try:
+            return mi.load_file(path, integrator=integrator, **defines)
+        except Exception as e:
+            text = str(e)
+            if not ('unused parameters' in text and '$integrator=' in text):
+                raise CLIError(scene_error(e, path, defines)) from None
+    try:
+        return mi.load_file(path, **defines)
+    except Exception as e:
+        raise CLIError(scene_error(e, path, defines)) from None
+
+
+# ----------------------------------------------------------------------------- integrator
+def _max_depth_of(integrator):
+    """The scene integrator's max_depth: bdpt's settings, or the value Mitsuba's integrators print."""
+    settings = getattr(integrator, 'settings', None)
+    if isinstance(settings, dict) and 'max_depth' in settings:
+        return settings['max_depth']
+    m = re.search(r'max_depth\s*=\s*(-?\d+)', str(integrator))
+    return int(m.group(1)) if m else None
+
+
+def make_integrator(args, scene):
+    """The integrator to render with, and its parameter values (for the header)."""
+    if args.integrator == 'bdpt':
+        return _make_bdpt(args, scene)
+    return _make_mitsuba(args, scene)
+
+
+def _load_bdpt(params):
+    import mitsuba as mi
+    try:
+        return mi.load_dict({'type': 'bdpt', **{k: v for k, v in params.items() if v is not None}})
+    except Exception as e:
+        raise CLIError(error_text(e)) from None
+
+
+def _make_bdpt(args, scene):
+    """bdpt with the scene's settings (if its integrator is bdpt; else only its max_depth),
+    statistics on, and the options given."""
+    from ..integrator import BDPTIntegrator
+    scene_integ = scene.integrator()
+    params = {}
+    if isinstance(scene_integ, BDPTIntegrator):
+        params.update(scene_integ.settings)
+    else:
+        md = _max_depth_of(scene_integ) if scene_integ is not None else None
+        if md is not None:
+            params['max_depth'] = md
+    params['statistics'] = True
+    params.update(given_params(args))
+    integ = _load_bdpt(params)
+    return integ, dict(integ.settings)
+
+
+def _make_mitsuba(args, scene):
+    """A Mitsuba integrator: the scene's own if it is that plugin and no option is given;
+    else a new one with the options given and the scene's max_depth, if the plugin takes one."""
+    import mitsuba as mi
+    from ..integrator import BDPTIntegrator
+    given = given_params(args)
+    bdpt_only = [n for n in given if n not in SHARED_PARAMS]
+    if bdpt_only:
+        flags = ', '.join(option_of(n) for n in bdpt_only)
+        raise CLIError(f"{flags}: bdpt option{'s' if len(bdpt_only) > 1 else ''}, not available with "
+                       f"--integrator {args.integrator}")
+    try:
+        bare = mi.load_dict({'type': args.integrator})
+    except Exception as e:
+        raise CLIError(f"integrator {args.integrator!r}: {error_text(e)}") from None
+    scene_integ = scene.integrator()
+    same = (scene_integ is not None and not isinstance(scene_integ, BDPTIntegrator)
+            and scene_integ.class_name() == bare.class_name())
+    if same and not given:                          # the scene's own, with all its settings
+        md = _max_depth_of(scene_integ)
+        return scene_integ, ({} if md is None else {'max_depth': md})
+    params = dict(given)
+    if 'max_depth' not in params and scene_integ is not None:
+        md = _max_depth_of(scene_integ)
+        if md is not None:
+            try:                                    # the scene's path length, if the plugin takes one
+                return mi.load_dict({'type': args.integrator, 'max_depth': md, **params}), {'max_depth': md, **params}
+            except Exception:
+                pass
+    try:
+        return mi.load_dict({'type': args.integrator, **params}), params
+    except Exception as e:
+        raise CLIError(f"integrator {args.integrator!r}: {error_text(e)}") from None
+
+
+def prepare_bdpt(args, scene, integ):
+    """Refuse a scene outside bdpt's scope with one line. With --time, return the integrator
+    rebuilt to run --time as its own pass loop: ``samples_per_pass`` set to one pass of
+    --pass-spp (as the integrator would cut a render of --pass-spp spp: fewer samples if its
+    memory budget or --samples-per-pass asks for it)."""
+    from ..passes import plan_passes
+    from ..scene_check import UnsupportedSceneError, check_scene
+    sensor = scene.sensors()[0]
+    try:
+        if args.time is None:
+            check_scene(scene, sensor)
+            return integ
+        ctx = integ.make_context(scene, sensor)     # checks the scene too
+    except UnsupportedSceneError as e:
+        raise CLIError(f"{e} (render it with another integrator, e.g. --integrator path)") from None
+    crop = sensor.film().crop_size()
+    n_pixels = int(crop[0]) * int(crop[1])
+    spp_pass, _, pixels = next(plan_passes(args.pass_spp, n_pixels, integ.bytes_per_sample(ctx),
+                                           integ.settings['samples_per_pass']))
+    del ctx
+    return _load_bdpt(dict(integ.settings, samples_per_pass=spp_pass * pixels))
