@@ -15,6 +15,7 @@ import mitsuba as mi
 from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w, sample_bsdf, smooth_mask
 from .endpoints import AreaKinds
 from .jitmath import pdf_w_to_a, safe_div
+from .rays import spawn, spawn_to, spawn_to_emitter
 from .roulette import roulette
 
 
@@ -80,7 +81,8 @@ class CameraTracer:
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
-        blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), active)
+        blocked = c.scene.ray_test(spawn_to_emitter(si.p, si.n, c.offsets.error(si.p, si.shape), ds,
+                                                    c.emitters.error_at(ds), si.time), active)
         if c.stats is not None:
             c.stats.shadow(active, blocked)
         active &= ~blocked
@@ -114,7 +116,8 @@ class CameraTracer:
         # The guard where the contribution is formed: vertices ~1e-19 apart give a subnormal
         # dist2 whose inverse overflows (and a NaN once the power weight, 0 there, multiplies it)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
-        blocked = c.scene.ray_test(si.spawn_ray_to(y.p), ok)
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, c.offsets.error(si.p, si.shape), y.p, y.n, v.err, si.time),
+                                   ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
@@ -160,7 +163,7 @@ class CameraTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                        bs.pdf, pdf_rev_w, is_delta)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        return si.spawn_ray(wo_world), beta, d_vcm, d_vc, active
+        return spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time), beta, d_vcm, d_vc, active
 
     # ------------------------------------------------------------------ walk
     @dr.syntax

@@ -15,6 +15,7 @@ from .endpoints import EmitterTable
 from .film import FilmAccumulator, StrategyLayers
 from .mis import MIS
 from .passes import UNBOUNDED
+from .rays import RayOffsets
 from .scene_check import VertexNeeds, scene_has_delta_bsdf, scene_perturbs_normals
 from .stats import RayStats
 from .store import record_type
@@ -33,6 +34,7 @@ class Context:
     scene, sensor      the Mitsuba scene and the sensor rendered
     camera             cameras.CameraModel of the sensor
     emitters           endpoints.EmitterTable: emitter choice and emission densities
+    offsets            rays.RayOffsets: the error bounds every spawned ray is offset by
     strategies         strategies.StrategySet: what exists and what is traced
     mis                mis.MIS: the weights, for the heuristic and the strategy set
     time               the sensor's shutter-open time (every ray's time)
@@ -53,7 +55,8 @@ class Context:
     def __init__(self, scene, sensor, settings, spp):
         self.scene, self.sensor = scene, sensor
         self.camera = camera_for(sensor)
-        self.emitters = EmitterTable(scene)
+        self.offsets = RayOffsets(scene)
+        self.emitters = EmitterTable(scene, self.offsets)
         self.unbounded = settings['max_depth'] < 0
         self.max_depth_edges = UNBOUNDED if self.unbounded else settings['max_depth']
         self.hide_emitters = settings['hide_emitters']

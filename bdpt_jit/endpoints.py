@@ -24,6 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from .jitmath import INV_PI, finite_or_zero, neg, pdf_w_to_a, safe_div, sel
+from .rays import RayOffsets, offset_origin
 
 # (r/d)^2 below which a sphere emitter's visible cap is sampled by area (EmitterTable.small_sphere);
 # above it Mitsuba's cone sampling is exact to ~1e-5 in float32
@@ -62,8 +63,9 @@ class AreaKinds:
 class EmitterTable:
     """Emitter choice and the emission densities of every emitter kind."""
 
-    def __init__(self, scene: mi.Scene):
+    def __init__(self, scene: mi.Scene, offsets: RayOffsets = None):
         self.scene = scene
+        self.offsets = offsets if offsets is not None else RayOffsets(scene)
         emitters = scene.emitters()
         weights = [float(e.sampling_weight()) for e in emitters]
         self.total_weight = sum(weights) or 1.0
@@ -209,13 +211,11 @@ class EmitterTable:
         e.beta = mi.Color3f(value * safe_div(1.0, e.pdf_emit_w))
         ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
         e.active = ok
-        if k.area is True:
-            e.ray = si_e.spawn_ray(d)
-        elif k.area is False:
-            e.ray = mi.Ray3f(origin, d, time)
-        else:
-            r_area = si_e.spawn_ray(d)
-            e.ray = mi.Ray3f(dr.select(k.area, r_area.o, origin), d, time)
+        # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
+        e.err = sel(k.area, self.offsets.error(ps.p, emitter.get_shape()), mi.Float(0.0)) \
+            if k.area is not False else mi.Float(0.0)
+        n_off = sel(k.area, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.area is not False else mi.Normal3f(0.0)
+        e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, dr.zeros(mi.Color0f))
         return e
 
     def pdf_direct_first_hit(self, e, si1, active):
@@ -323,6 +323,14 @@ class EmitterTable:
         """A density per unit solid angle at the reference point, per unit area at ``ds.p``."""
         return pdf_w_to_a(pdf_w, dr.dot(ds.n, ds.d), dr.square(ds.dist))
 
+    def error_at(self, ds):
+        """The error bound of an emitter sample's point for a shadow ray's far end (rays.py):
+        area emitters' points lie on their shape; a point light or a direction has none."""
+        k = self.kinds(ds.emitter)
+        if k.area is False:
+            return mi.Float(0.0)
+        return sel(k.area, self.offsets.error(ds.p, ds.emitter.get_shape()), mi.Float(0.0))
+
     @staticmethod
     def direct_terms(ds, k):
         """For emitter sampling's weight (mis.weight_s1): the density per unit solid angle at the
@@ -370,5 +378,5 @@ class EmitterTable:
 
 class Emission:
     """A light subpath's start (see EmitterTable.sample_emission)."""
-    emitter = kinds = p_sel = ps = si_e = d = origin = n_e = cos_e = None
+    emitter = kinds = p_sel = ps = si_e = d = origin = n_e = cos_e = err = None
     pdf_emit_w = pdf_light_a = beta = active = ray = None

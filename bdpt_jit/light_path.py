@@ -9,6 +9,7 @@ import mitsuba as mi
 from .connect import (CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w,
                       sample_bsdf, smooth_mask)
 from .jitmath import pdf_w_to_a, safe_div
+from .rays import spawn, spawn_to
 from .roulette import roulette
 
 
@@ -54,7 +55,7 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        blocked = c.scene.ray_test(si_e.spawn_ray_to(ds.p), ok)
+        blocked = c.scene.ray_test(spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
@@ -84,14 +85,14 @@ class LightTracer:
                 break
             store.grow()             # lanes paused on a full storage resume with more levels
 
-    def splat_vertex(self, sampler, si, bsdf, depth, beta, d_vcm, d_vc, film, active):
+    def splat_vertex(self, sampler, si, err, bsdf, depth, beta, d_vcm, d_vc, film, active):
         """t=1: the light vertex ``si`` connected to the camera and splatted to the light image."""
         c = self.ctx
         ds, sensor_w = c.sensor.sample_direction(si, sampler.next_2d(), active)
         ok = active & (ds.pdf > 0)
         f, pdf_fwd_w, pdf_rev_w, valid = eval_light_vertex(si, bsdf, ds.d, ok, c.exact_adjoint, c.diffuse)
         ok &= valid & (dr.max(f) > 0)
-        blocked = c.scene.ray_test(si.spawn_ray_to(ds.p), ok)
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, ds.p, mi.Normal3f(0.0), 0.0, si.time), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
@@ -102,7 +103,7 @@ class LightTracer:
         if c.layers is not None:
             c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
-    def scatter(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+    def scatter(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
         """Sample the next direction in importance mode (the adjoint BSDF); update throughput,
         MIS quantities and the roulette. Returns the next ray and the updated state."""
         c = self.ctx
@@ -129,7 +130,7 @@ class LightTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        return si.spawn_ray(wo_world), beta, d_vcm, d_vc, active
+        return spawn(si.p, si.n, err, wo_world, si.time), beta, d_vcm, d_vc, active
 
     @dr.syntax
     def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count):
@@ -147,22 +148,23 @@ class LightTracer:
         while dr.hint(active & (count < cap_eff), label='bdpt_light_subpath', exclude=[st_v]):
             bsdf = si.bsdf()
             smooth = smooth_mask(bsdf, c.diffuse)
+            err = c.offsets.error(si.p, si.shape)
 
             # ---------------- store y_depth for connections (s >= 2, t >= 2) ----------------
             if dr.hint(store_on, mode='scalar'):
                 do_store = active & smooth & (depth + 2 <= max_edges)
-                store_record(st_v, make_record(si, bsdf, beta, d_vcm, d_vc, depth), slot_of(count, idx), do_store)
+                store_record(st_v, make_record(si, err, bsdf, beta, d_vcm, d_vc, depth), slot_of(count, idx), do_store)
                 count[do_store] += 1
 
             # ---------------- t = 1: connect y_depth to the camera ----------------
             if dr.hint(c.strategies.trace_splat, mode='scalar'):
-                self.splat_vertex(sampler, si, bsdf, depth, beta, d_vcm, d_vc, film,
+                self.splat_vertex(sampler, si, err, bsdf, depth, beta, d_vcm, d_vc, film,
                                   active & smooth & (depth + 1 <= max_edges))
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
             ray, beta, d_vcm, d_vc, active = self.scatter(
-                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+                sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             si = c.scene.ray_intersect(ray, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('light', active, si.is_valid())

@@ -15,6 +15,7 @@ import mitsuba as mi
 # 35-word records took ~140 ms of a 720 ms render; 25 words +20% samples/s).
 FIELDS = {
     'p': mi.Point3f,          # position
+    'err': mi.Float,          # bound on the position's floating-point error (rays.RayOffsets)
     'n': mi.Normal3f,         # geometric normal         (absent: the shading normal, see below)
     'n_s': mi.Normal3f,       # shading normal
     's': mi.Vector3f,         # shading tangent          (absent: any tangent, isotropic BSDFs)
@@ -43,9 +44,9 @@ class VertexRecord:
     DRJIT_STRUCT = {}
 
     @classmethod
-    def make(cls, si, bsdf, beta, d_vcm, d_vc, depth):
+    def make(cls, si, err, bsdf, beta, d_vcm, d_vc, depth):
         v = cls()
-        src = {'p': si.p, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
+        src = {'p': si.p, 'err': err, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
                'wi': si.wi if 's' in cls.DRJIT_STRUCT else si.to_world(si.wi),
                'shape': si.shape, 'bsdf': bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
                'dp_dv': si.dp_dv, 'beta': beta, 'd_vcm': d_vcm, 'd_vc': d_vc, 'depth': depth}
@@ -160,7 +161,7 @@ StoredVertex = make_record_type(list(FIELDS))
 def record_type(needs):
     """The record for a scene: ``needs`` (scene_check.VertexNeeds) says which optional fields
     its BSDFs and shapes read."""
-    fields = ['p', 'n_s', 'wi', 'bsdf', 'beta', 'd_vcm', 'd_vc']
+    fields = ['p', 'err', 'n_s', 'wi', 'bsdf', 'beta', 'd_vcm', 'd_vc']
     if needs.geometric_normal:
         fields.append('n')
     if needs.tangent:
