@@ -6,9 +6,11 @@ import re
 import mitsuba as mi
 import numpy as np
 
+from .cameras import CAMERAS
+
 SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
 SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap')
-SUPPORTED_SENSORS = ('perspective', 'thinlens')
+SUPPORTED_SENSORS = tuple(CAMERAS)     # a camera model registered in cameras.py is supported
 
 
 class UnsupportedSceneError(ValueError):
