@@ -82,7 +82,7 @@ class CameraTracer:
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
         blocked = c.scene.ray_test(spawn_to_emitter(si.p, si.n, c.offsets.error(si.p, si.shape), ds,
-                                                    c.emitters.error_at(ds), si.time), active)
+                                                    c.emitters.error_at(ds), si.time, c.offsets.far_rel), active)
         if c.stats is not None:
             c.stats.shadow(active, blocked)
         active &= ~blocked
@@ -116,8 +116,8 @@ class CameraTracer:
         # The guard where the contribution is formed: vertices ~1e-19 apart give a subnormal
         # dist2 whose inverse overflows (and a NaN once the power weight, 0 there, multiplies it)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
-        blocked = c.scene.ray_test(spawn_to(si.p, si.n, c.offsets.error(si.p, si.shape), y.p, y.n, v.err, si.time),
-                                   ok)
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, c.offsets.error(si.p, si.shape), y.p, y.n, v.err, si.time,
+                                            c.offsets.far_rel), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked

@@ -55,7 +55,7 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        blocked = c.scene.ray_test(spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time), ok)
+        blocked = c.scene.ray_test(spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time, c.offsets.far_rel), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
@@ -92,7 +92,7 @@ class LightTracer:
         ok = active & (ds.pdf > 0)
         f, pdf_fwd_w, pdf_rev_w, valid = eval_light_vertex(si, bsdf, ds.d, ok, c.exact_adjoint, c.diffuse)
         ok &= valid & (dr.max(f) > 0)
-        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, ds.p, mi.Normal3f(0.0), 0.0, si.time), ok)
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, ds.p, mi.Normal3f(0.0), 0.0, si.time, c.offsets.far_rel), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
