@@ -52,6 +52,35 @@ def cached_reference(key_parts, make):
     return arr
 
 
+def cornell_scene(*args, **kwargs):
+    """The tests' one Cornell box, stability_cases.cornell (same arguments), loaded."""
+    from stability_cases import cornell
+    return mi.load_dict(cornell(*args, **kwargs))
+
+
+def load_scene(name, res, max_depth):
+    """The scene file ``name`` of scenes/ at ``res`` x ``res`` (its own integrator: Mitsuba's
+    ``path``; every test passes the one it renders with)."""
+    return mi.load_file(scene_path(name), res=res, max_depth=max_depth, integrator='path')
+
+
+def reference(scene_key, load, integrator, spp, batches, seed0):
+    """Reference batches (render_batches), cached under tests/.refcache (cached_reference):
+    ``integrator`` (a dict) on the scene ``load()`` in ``batches`` batches of ``spp`` samples,
+    seeds from ``seed0``. ``scene_key`` names the scene and what built it; the integrator's
+    parameters, spp, batches and seed0 complete the cache key. The scene is loaded only when
+    the reference is not cached."""
+    key = (scene_key, tuple(sorted(integrator.items())), spp, batches, seed0)
+    return cached_reference(key, lambda: render_batches(load(), integrator, spp, batches, seed0=seed0))
+
+
+def file_reference(name, res, max_depth, which, spp, batches, seed0, **params):
+    """``reference`` of Mitsuba's integrator ``which`` (with max_depth and ``params``) on the
+    scene file ``name`` (load_scene)."""
+    return reference((name, res, max_depth), lambda: load_scene(name, res, max_depth),
+                     {'type': which, 'max_depth': max_depth, **params}, spp, batches, seed0)
+
+
 def welch(a, b):
     """Per-entry Welch t-test of the means of batches a (K1, ...) and b (K2, ...).
     Returns two-sided p-values (1 where both are noise-free and equal, 0 where they differ)."""

@@ -1,4 +1,5 @@
-"""Scene builders for the numerical-stability suite (tests/test_stability.py, tests/test_fuzz.py).
+"""Scene builders for the numerical-stability suite (tests/test_stability.py, tests/test_fuzz.py),
+and the Cornell box every test builds (``cornell``; loaded: helpers.cornell_scene).
 
 Every builder returns a Mitsuba scene *dict* (``mi.load_dict`` it), small (8x8 to 32x32, box
 filter) so that a case renders in well under a second once its kernels are compiled. The dicts
@@ -48,8 +49,11 @@ def sensor(origin, target, up=(0, 1, 0), fov=40.0, res=16, height=None, crop=Non
 def cornell(res=16, height=None, crop=None, light=True, closed=False, albedo=None, radiance_scale=1.0,
             camera=None):
     """Mitsuba's Cornell box (``mi.cornell_box()``: walls at +-1, camera at z=3.9 looking at -z),
-    box filter. ``closed``: a front wall at z=+1 facing inwards, and the camera moved inside
-    (at z=0.9, wide angle). ``albedo``: every BSDF becomes a white diffuse of that albedo."""
+    box filter, ``res`` x ``height`` (default square) pixels, ``crop``: (offset x, offset y,
+    width, height). ``light=False``: no emitter. ``radiance_scale`` scales the light's radiance.
+    ``camera``: sensor properties updated (e.g. ``{'type': 'thinlens', ...}``). ``closed``: a
+    front wall at z=+1 facing inwards, and the camera moved inside (at z=0.9, wide angle).
+    ``albedo``: every BSDF becomes a white diffuse of that albedo."""
     d = mi.cornell_box()
     d.pop('integrator', None)
     d['sensor']['film'] = film(res, height, crop)

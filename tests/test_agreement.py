@@ -14,28 +14,18 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import agreement, cached_reference, no_delta_mask, render_batches, scene_path
+from helpers import agreement, file_reference, load_scene, no_delta_mask, reference, render_batches
 
 RES = 32
 BATCHES = 16
-
-
-def load(name, max_depth, integrator='path'):
-    return mi.load_file(scene_path(name), res=RES, max_depth=max_depth, integrator=integrator)
-
-
-def reference(name, max_depth, which, spp):
-    def make():
-        scene = load(name, max_depth)
-        return render_batches(scene, {'type': which, 'max_depth': max_depth}, spp, BATCHES, seed0=10_000)
-    return cached_reference((name, RES, max_depth, which, spp, BATCHES), make)
+REF_SEED = 10_000           # first seed of the references' batches
 
 
 def check(name, max_depth, technique, mis, spp=64, ref_spp=1024):
-    scene = load(name, max_depth)
+    scene = load_scene(name, RES, max_depth)
     mask_lt = no_delta_mask(scene)
-    ref_pt = reference(name, max_depth, 'ptracer', ref_spp)
-    ref_path = reference(name, max_depth, 'path', ref_spp)
+    ref_pt = file_reference(name, RES, max_depth, 'ptracer', ref_spp, BATCHES, REF_SEED)
+    ref_path = file_reference(name, RES, max_depth, 'path', ref_spp, BATCHES, REF_SEED)
     ref = np.where(mask_lt[None, :, :, None], ref_pt, ref_path)
     if technique == 'pt':
         # pt is path tracing with emitter sampling, the estimator Mitsuba's `path` uses: on
@@ -117,9 +107,8 @@ def test_smooth_shaded_mesh_agrees_with_path(max_depth, technique, mis, spp):
 
     def load_smooth():
         return mi.load_dict(sc.lowpoly_sphere(res=SMOOTH_RES))
-    ref = cached_reference(('lowpoly_sphere', SMOOTH_RES, max_depth, 'path', 2048, BATCHES),
-                           lambda: render_batches(load_smooth(), {'type': 'path', 'max_depth': max_depth},
-                                                  2048, BATCHES, seed0=10_000))
+    ref = reference(('lowpoly_sphere', SMOOTH_RES), load_smooth, {'type': 'path', 'max_depth': max_depth},
+                    2048, BATCHES, REF_SEED)
     mine = render_batches(load_smooth(), {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique,
                                           'mis': mis}, spp, BATCHES)
     ok, msg = agreement(mine, ref, alpha=0.01)

@@ -7,31 +7,20 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import assert_finite, render_batches, scene_path
-
-
-def cornell(res=32, crop=None, width=None, height=None, emitters=True):
-    d = mi.cornell_box()
-    d['sensor']['film'].update(width=width or res, height=height or res, rfilter={'type': 'box'})
-    if crop:
-        ox, oy, cw, ch = crop
-        d['sensor']['film'].update(crop_offset_x=ox, crop_offset_y=oy, crop_width=cw, crop_height=ch)
-    if not emitters:
-        d.pop('light')
-    return mi.load_dict(d)
+from helpers import assert_finite, cornell_scene, render_batches, scene_path
 
 
 @pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
 @pytest.mark.parametrize('max_depth', [0, 1, 3, -1])
 def test_no_emitters_renders_exact_zero(technique, max_depth):
-    scene = cornell(16, emitters=False)
+    scene = cornell_scene(16, light=False)
     img = np.array(mi.render(scene, integrator=mi.load_dict(
         {'type': 'bdpt', 'technique': technique, 'max_depth': max_depth}), spp=4))
     assert np.all(img == 0.0)
 
 
 def test_max_depth_zero_is_black_like_path():
-    scene = cornell(16)
+    scene = cornell_scene(16)
     mine = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 0}), spp=4))
     ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'path', 'max_depth': 0}), spp=4))
     assert np.all(mine == 0.0) and np.all(ref == 0.0)
@@ -62,20 +51,20 @@ def assert_same(a, b, what):
 
 def test_light_image_independent_of_resolution():
     # same field of view: the whole image's mean brightness
-    a = light_image_mean(cornell(16), 64, 8, (0, 16, 0, 16))
-    b = light_image_mean(cornell(48), 8, 8, (0, 48, 0, 48))
+    a = light_image_mean(cornell_scene(16), 64, 8, (0, 16, 0, 16))
+    b = light_image_mean(cornell_scene(48), 8, 8, (0, 48, 0, 48))
     assert_same(a, b, 'resolution 16 vs 48')
 
 
 def test_light_image_independent_of_spp():
-    a = light_image_mean(cornell(24), 8, 8, (0, 24, 0, 24))
-    b = light_image_mean(cornell(24), 64, 8, (0, 24, 0, 24))
+    a = light_image_mean(cornell_scene(24), 8, 8, (0, 24, 0, 24))
+    b = light_image_mean(cornell_scene(24), 64, 8, (0, 24, 0, 24))
     assert_same(a, b, 'spp 8 vs 64')
 
 
 def test_light_image_independent_of_crop_window():
-    full = render_batches(cornell(32), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
-    crop = render_batches(cornell(32, crop=(8, 4, 16, 20)), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
+    full = render_batches(cornell_scene(32), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
+    crop = render_batches(cornell_scene(32, crop=(8, 4, 16, 20)), {'type': 'bdpt', 'technique': 'lt', 'max_depth': 3}, 64, 8)
     assert crop.shape[1:3] == (20, 16)
     f = full[:, 4:24, 8:24, :].mean(axis=(1, 2, 3))
     c = crop.mean(axis=(1, 2, 3))
@@ -83,7 +72,7 @@ def test_light_image_independent_of_crop_window():
 
 
 def test_non_square_film_matches_path():
-    scene = cornell(width=40, height=24)
+    scene = cornell_scene(40, height=24)
     mine = render_batches(scene, {'type': 'bdpt', 'max_depth': 3}, 32, 8).mean(axis=(1, 2, 3))
     ref = render_batches(scene, {'type': 'path', 'max_depth': 3}, 256, 8, seed0=99).mean(axis=(1, 2, 3))
     assert_same((mine.mean(), mine.std(ddof=1) / np.sqrt(8)), (ref.mean(), ref.std(ddof=1) / np.sqrt(8)), 'non-square film')
@@ -105,7 +94,7 @@ def test_strategy_layers_sum_to_the_image():
 
 def test_ray_statistics_are_exact_where_they_can_be():
     """pt with max_depth 1: one primary ray per sample, nothing else."""
-    scene = cornell(8)
+    scene = cornell_scene(8)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 1, 'technique': 'pt', 'statistics': True})
     mi.render(scene, integrator=integ, spp=3)
     r = integ.last_render_info['rays']

@@ -10,21 +10,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import agreement, assert_finite, cached_reference, no_delta_mask, render_batches, scene_path
+from helpers import (agreement, assert_finite, cornell_scene, file_reference, load_scene, no_delta_mask, reference,
+                     render_batches)
+from stability_cases import cornell
 
 RES = 32
 BATCHES = 16
-
-
-def load(name, max_depth):
-    return mi.load_file(scene_path(name), res=RES, max_depth=max_depth, integrator='path')
-
-
-def reference(name, max_depth, which, spp):
-    def make():
-        return render_batches(load(name, max_depth), {'type': which, 'max_depth': max_depth},
-                              spp, BATCHES, seed0=20_000)
-    return cached_reference((name, RES, max_depth, which, spp, BATCHES), make)
+REF_SEED = 20_000           # first seed of the references' batches
 
 
 @pytest.mark.parametrize('max_depth,technique,mis', [
@@ -39,8 +31,8 @@ def test_all_lights_agree_with_path(max_depth, technique, mis):
     """area + point + spot + directional + envmap together; no delta surfaces, so `path` is a
     valid reference in every pixel (lt: where no environment is seen directly)."""
     name = 'all-lights.xml'
-    scene = load(name, max_depth)
-    ref = reference(name, max_depth, 'path', 1024)
+    scene = load_scene(name, RES, max_depth)
+    ref = file_reference(name, RES, max_depth, 'path', 1024, BATCHES, REF_SEED)
     # uniform weights render the glossy sphere's reflection of the small lights heavy-tailed:
     # one pixel 25% low at 16 x 256 spp, within the test at 16 x 1024
     spp = {'pt': 1024, 'lt': 64}.get(technique, 1024 if mis == 'uniform' else 64)
@@ -61,11 +53,11 @@ def test_all_lights_agree_with_path(max_depth, technique, mis):
 def test_sun_room(max_depth, technique, mis):
     """The paper's Figure 7 setup: sun and sky through a ceiling opening, glass and mirror."""
     name = 'sun-room.xml'
-    scene = load(name, max_depth)
+    scene = load_scene(name, RES, max_depth)
     if technique == 'pt':
-        ref, mask, spp = reference(name, max_depth, 'path', 1024), None, 1024
+        ref, mask, spp = file_reference(name, RES, max_depth, 'path', 1024, BATCHES, REF_SEED), None, 1024
     else:
-        ref, mask = reference(name, max_depth, 'ptracer', 1024), no_delta_mask(scene)
+        ref, mask = file_reference(name, RES, max_depth, 'ptracer', 1024, BATCHES, REF_SEED), no_delta_mask(scene)
         # lt is ptracer's estimator: splats from vertices close to the camera make it
         # heavy-tailed, so it is compared at the reference's sample count
         spp = 1024 if technique == 'lt' else 256 if mis == 'uniform' else 64
@@ -79,10 +71,10 @@ def test_path_misses_the_sun_caustics_that_bdpt_renders():
     """Where the sun's light reaches the floor only through the glass sphere, bdpt agrees with
     ptracer while `path` is darker: a reference check, not a bdpt assertion alone."""
     name, md = 'sun-room.xml', 5
-    scene = load(name, md)
+    scene = load_scene(name, RES, md)
     mask = no_delta_mask(scene)
-    pt_ref = reference(name, md, 'ptracer', 1024).mean(axis=0)[mask].mean()
-    path_ref = reference(name, md, 'path', 1024).mean(axis=0)[mask].mean()
+    pt_ref = file_reference(name, RES, md, 'ptracer', 1024, BATCHES, REF_SEED).mean(axis=0)[mask].mean()
+    path_ref = file_reference(name, RES, md, 'path', 1024, BATCHES, REF_SEED).mean(axis=0)[mask].mean()
     mine = render_batches(scene, {'type': 'bdpt', 'max_depth': md}, 64, BATCHES).mean(axis=0)[mask].mean()
     assert path_ref < pt_ref * 0.995                  # path misses the caustics
     assert abs(mine - pt_ref) < abs(path_ref - pt_ref) / 3
@@ -125,9 +117,7 @@ def test_white_furnace(technique, mis):
 
 
 def box_with(emitter, res=16):
-    d = mi.cornell_box()
-    d['sensor']['film'].update(width=res, height=res, rfilter={'type': 'box'})
-    d.pop('light')
+    d = cornell(res, light=False)
     d['extra'] = emitter
     return mi.load_dict(d)
 
@@ -154,10 +144,7 @@ def test_stiff_lights_render_finite(case, technique, tmp_path):
 
 
 def thinlens_box():
-    d = mi.cornell_box()
-    d['sensor'].update(type='thinlens', aperture_radius=0.1, focus_distance=3.0)
-    d['sensor']['film'].update(width=RES, height=RES, rfilter={'type': 'box'})
-    return mi.load_dict(d)
+    return cornell_scene(RES, camera={'type': 'thinlens', 'aperture_radius': 0.1, 'focus_distance': 3.0})
 
 
 @pytest.mark.parametrize('max_depth,technique,mis', [
@@ -172,8 +159,8 @@ def test_thinlens_cornell_box(max_depth, technique, mis):
     """A thin-lens view (defocused) of the Cornell box: light-image splats through sampled lens
     points; no delta surfaces, so `path` is a reference everywhere."""
     scene = thinlens_box()
-    ref = cached_reference(('thinlens-box', RES, max_depth, 'path', 1024, BATCHES),
-                           lambda: render_batches(scene, {'type': 'path', 'max_depth': max_depth}, 1024, BATCHES, seed0=30_000))
+    ref = reference(('thinlens-box', RES), thinlens_box, {'type': 'path', 'max_depth': max_depth},
+                    1024, BATCHES, 30_000)
     spp = 1024 if technique == 'pt' or mis == 'uniform' else 64
     mine = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique, 'mis': mis}, spp, BATCHES)
     ok, msg = agreement(mine, ref)
@@ -181,7 +168,7 @@ def test_thinlens_cornell_box(max_depth, technique, mis):
 
 
 def test_orthographic_is_refused_clearly():
-    d = mi.cornell_box()
+    d = cornell(8)
     d['sensor'] = {'type': 'orthographic', 'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
                    'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}}
     from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
@@ -194,15 +181,13 @@ def test_hide_emitters_with_an_environment():
     """hide_emitters hides the directly seen environment as Mitsuba's `path` does (and the
     directly seen area light), while everything the environment lights stays."""
     name, md = 'all-lights.xml', 3
-    scene = load(name, md)
-    ref = cached_reference((name, RES, md, 'path-hidden', 1024, BATCHES),
-                           lambda: render_batches(scene, {'type': 'path', 'max_depth': md, 'hide_emitters': True},
-                                                  1024, BATCHES, seed0=40_000))
+    scene = load_scene(name, RES, md)
+    ref = file_reference(name, RES, md, 'path', 1024, BATCHES, 40_000, hide_emitters=True)
     mine = render_batches(scene, {'type': 'bdpt', 'max_depth': md, 'hide_emitters': True}, 64, BATCHES)
     # Pixels that see the area light itself are left out: there Mitsuba's `path` returns ~3e-4
     # (0.004% of the light's radiance) from max_depth 2 on although the light's BSDF is black,
     # and bdpt returns 0 (noticed, not explained).
-    visible = reference(name, md, 'path', 1024).mean(axis=0)
+    visible = file_reference(name, RES, md, 'path', 1024, BATCHES, REF_SEED).mean(axis=0)
     on_light = (visible >= 4.0).any(axis=2)
     ok, msg = agreement(mine, ref, mask=~on_light)
     assert ok, msg

@@ -7,12 +7,8 @@ import numpy as np
 import pytest
 
 import bdpt_jit.context as context_module
-
-
-def cornell(delta_sphere=False):
-    d = mi.cornell_box()
-    d['sensor']['film'].update(width=8, height=8)
-    return mi.load_dict(d)
+from helpers import cornell_scene
+from stability_cases import cornell
 
 
 def traced_ops(scene, **params):
@@ -31,7 +27,7 @@ def traced_ops(scene, **params):
 
 
 def test_pt_traces_no_light_subpath():
-    scene = cornell()
+    scene = cornell_scene(8)
     ops_pt, n_pt, info_pt = traced_ops(scene, technique='pt', max_depth=5)
     ops_bd, n_bd, info_bd = traced_ops(scene, technique='bdpt', max_depth=5)
     assert not info_pt['light_pass'] and info_bd['light_pass']
@@ -40,7 +36,7 @@ def test_pt_traces_no_light_subpath():
 
 
 def test_lt_traces_no_camera_subpath():
-    scene = cornell()
+    scene = cornell_scene(8)
     ops_lt, _, info = traced_ops(scene, technique='lt', max_depth=5)
     ops_bd, _, _ = traced_ops(scene, technique='bdpt', max_depth=5)
     assert not info['camera_pass'] and info['light_pass']
@@ -48,7 +44,7 @@ def test_lt_traces_no_camera_subpath():
 
 
 def test_short_max_depth_leaves_out_connections():
-    scene = cornell()
+    scene = cornell_scene(8)
     ops2, _, info2 = traced_ops(scene, max_depth=2)
     ops5, _, info5 = traced_ops(scene, max_depth=5)
     assert not any('s>=2' in s for s in info2['strategies'])
@@ -61,7 +57,7 @@ def test_delta_handling_traced_only_when_the_scene_has_delta_bsdfs(monkeypatch):
     # through Mitsuba's BSDF calls: with the constant-diffuse table (all of this scene) the
     # sampled lobe is a constant and Dr.Jit folds the delta tests away either way
     monkeypatch.setattr(context_module, 'diffuse_table', lambda s: None)
-    scene = cornell()                                  # diffuse only
+    scene = cornell_scene(8)                          # diffuse only
     ops_plain, _, info = traced_ops(scene, max_depth=5)
     assert info['delta_handling'] is False
     monkeypatch.setattr(context_module, 'scene_has_delta_bsdf', lambda s: True)
@@ -71,7 +67,7 @@ def test_delta_handling_traced_only_when_the_scene_has_delta_bsdfs(monkeypatch):
 
 
 def test_render_reports_strategies():
-    scene = cornell()
+    scene = cornell_scene(8)
     _, _, info = traced_ops(scene, max_depth=5, hide_emitters=True)
     assert info['strategies'] and not any('s=1,t=1' in s for s in info['strategies'])
     _, _, info = traced_ops(scene, max_depth=1)
@@ -82,8 +78,7 @@ def test_render_reports_strategies():
 def _shapes_scene():
     """Every shape kind the record analysis distinguishes, with BSDFs of each class."""
     T = mi.ScalarTransform4f
-    d = mi.cornell_box()
-    d['sensor']['film'].update(width=16, height=16)
+    d = cornell(16)
     d['ball'] = {'type': 'sphere', 'center': [0.4, -0.6, 0.2], 'radius': 0.3, 'bsdf': {'type': 'roughconductor', 'alpha': 0.3}}
     d['disk'] = {'type': 'disk', 'to_world': T().translate([-0.4, -0.5, -0.3]).rotate([1, 0, 0], -70).scale(0.3),
                  'bsdf': {'type': 'roughplastic', 'alpha': 0.2}}
@@ -140,8 +135,7 @@ def test_constant_diffuse_bsdfs_without_virtual_calls(variant, monkeypatch):
         for k in ('ball', 'disk'):
             d[k]['bsdf'] = {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': [0.3, 0.6, 0.2]}}
     elif variant == 'textured_diffuse':
-        d = mi.cornell_box()
-        d['sensor']['film'].update(width=16, height=16)
+        d = cornell(16)
         for k in d:
             if isinstance(d[k], dict) and d[k].get('type') == 'diffuse':
                 d[k]['reflectance'] = {'type': 'checkerboard'}
