@@ -12,7 +12,8 @@ iterations, and the temporaries of each strategy stay inside its function."""
 import drjit as dr
 import mitsuba as mi
 
-from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w, sample_bsdf, smooth_mask
+from . import gradients
+from .connect import CTX_RADIANCE, eval_camera_vertex, eval_light_vertex, reverse_pdf_w, smooth_mask
 from .endpoints import AreaKinds
 from .jitmath import pdf_w_to_a, safe_div
 from .rays import spawn, spawn_to, spawn_to_emitter
@@ -32,7 +33,7 @@ class CameraTracer:
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size
-        ray, ray_w = c.sensor.sample_ray(c.time, sampler.next_1d(), adjusted, sampler.next_2d())
+        ray, ray_w = c.camera.sample_ray(c.time, sampler.next_1d(), adjusted, sampler.next_2d())
         return pos + c.camera.crop_offset, ray, mi.Color3f(ray_w)
 
     # ------------------------------------------------------------------ strategies
@@ -77,7 +78,7 @@ class CameraTracer:
     def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None):
         """s=1: emitter sampling from the camera vertex ``si``."""
         c = self.ctx
-        ds, em_w = c.emitters.sample_direct(si, u, active)
+        ds, em_w = gradients.sample_direct(c, si, u, active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
@@ -149,7 +150,7 @@ class CameraTracer:
         """Sample the next direction; update throughput, MIS quantities and the roulette.
         Returns the next ray and the updated state."""
         c = self.ctx
-        bs, bsdf_w = sample_bsdf(bsdf, CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active, c.diffuse)
+        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
         active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
         beta = beta * bsdf_w
         wo_world = si.to_world(bs.wo)

@@ -50,9 +50,10 @@ class Context:
     splat_scale        the light image's scale per splat (film.FilmAccumulator.splat_scale), opaque
     layers             film.StrategyLayers, or None (parameter strategy_images)
     stats              stats.RayStats, or None (parameter statistics)
+    ad                 a differentiable pass (gradients.py): detached sampling, values with derivatives
     """
 
-    def __init__(self, scene, sensor, settings, spp):
+    def __init__(self, scene, sensor, settings, spp, ad=False):
         self.scene, self.sensor = scene, sensor
         self.camera = camera_for(sensor)
         self.offsets = RayOffsets(scene)
@@ -62,13 +63,15 @@ class Context:
         self.hide_emitters = settings['hide_emitters']
         self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
                                                 self.camera, self.hide_emitters)
-        self.mis = MIS(settings['mis'], self.strategies)
+        self.ad = ad
+        self.mis = MIS(settings['mis'], self.strategies, detached=ad)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
         self.has_delta = scene_has_delta_bsdf(scene)
         self.exact_adjoint = scene_perturbs_normals(scene)
         self.record = record_type(VertexNeeds(scene))
-        self.diffuse = diffuse_table(scene)
+        # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
+        self.diffuse = None if ad else diffuse_table(scene)
         # opaque: literals would be baked into the kernels and recompile them for every spp
         self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))

@@ -60,6 +60,24 @@ class FilmAccumulator:
         return self.film.develop()
 
 
+    def pass_image(self, camera_share):
+        """A differentiable image of one pass, in the layout ``film.develop()`` gives (rgb, and
+        alpha if the film has it): the pass's camera image normalised by its own filter weights
+        times ``camera_share`` (its share of the render's samples), plus its light image (already
+        scaled by the render's 1/spp). Summed over the passes this is the developed image; with
+        a box filter exactly (every sample weighs 1 in its pixel), with another filter up to the
+        spread of the passes' weight sums."""
+        cam = self.cam.tensor()
+        lt = self.lt.tensor()
+        c = self.n_channels
+        w = dr.detach(cam[:, :, c - 1:c])
+        inv_w = dr.select(w > 0, camera_share / dr.select(w > 0, w, 1.0), 0.0)
+        parts = [cam[:, :, 0:3] * inv_w + lt[:, :, 0:3]]
+        if self.has_alpha:
+            parts.append(dr.detach(cam[:, :, 3:4]) * inv_w)
+        return dr.concat(parts, axis=2) if len(parts) > 1 else parts[0]
+
+
 class StrategyLayers:
     """One image per (s,t) strategy, weighted (as it enters the render) and unweighted (its
     estimate alone), like pbrt's visualizestrategies and Mitsuba 0.6's debug images.

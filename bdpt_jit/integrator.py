@@ -20,8 +20,11 @@ from .film import FilmAccumulator
 from .light_path import LightTracer
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, RenderHooks, caused_by_interrupt, count_passes,
                      light_capacity, pass_seed, plan_passes)
+from .gradients import check_parameters
 from .scene_check import check_scene, check_variant
 from .store import LightStore
+
+AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
 
 
 class BDPTIntegrator(mi.SamplingIntegrator):
@@ -142,8 +145,59 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             info['rays'] = ctx.stats.summary()
         return info
 
+    # ------------------------------------------------------------------ derivatives
+    def render_forward(self, scene, params=None, sensor=0, seed=0, spp=0):
+        """Forward-mode derivative of the image (the gradients set on ``params`` pushed to the
+        image), pass by pass: what ``mi.render`` calls for ``dr.forward``. See gradients.py."""
+        grad = None
+        for img in self.differentiable_passes(scene, params, sensor, seed, spp):
+            dr.forward_to(img)
+            g = dr.grad(img)
+            grad = g if grad is None else grad + g
+            dr.eval(grad)
+        return grad
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """Reverse-mode derivative: ``grad_in`` (the image's adjoint) propagated to the scene
+        parameters, pass by pass, so that memory is bounded by the pass size, not by spp."""
+        for img in self.differentiable_passes(scene, params, sensor, seed, spp):
+            dr.backward_from(img * grad_in)
+
+    def differentiable_passes(self, scene, params, sensor, seed, spp):
+        """Yields, pass by pass, a differentiable image of that pass's share of the render
+        (film.FilmAccumulator.pass_image), traced with evaluated loops (Dr.Jit 1.5.0's AD
+        through symbolic loops is unreliable) and detached sampling (gradients.py)."""
+        check_parameters(params)
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        if spp == 0:
+            spp = sensor.sampler().sample_count()
+        check_scene(scene, sensor)
+        ctx = Context(scene, sensor, self.settings, spp, ad=True)
+        crop = sensor.film().crop_size()
+        n_pixels = int(crop[0]) * int(crop[1])
+        # the AD graph of a sample holds every vertex's values: passes 8 times smaller
+        plan = plan_passes(spp, n_pixels, AD_BYTES_FACTOR * self.bytes_per_sample(ctx), self.samples_per_pass)
+        with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False), \
+                dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
+            for i, (spp_pass, pixel_start, pixel_count) in enumerate(plan):
+                if pixel_count != n_pixels:
+                    raise NotImplementedError(
+                        "bdpt: derivatives need passes of whole images: raise samples_per_pass to at "
+                        f"least the crop's {n_pixels} pixels")
+                acc = FilmAccumulator(sensor.film())
+                self.render_pass(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
+                yield acc.pass_image(spp_pass / spp)
+
     def sample(self, *args, **kwargs):
-        raise NotImplementedError('bdpt renders whole images: call mi.render(scene) with it')
+        # Mitsuba calls a nested integrator's sample() (the aov integrator wrapping bdpt does)
+        raise NotImplementedError(
+            "bdpt cannot run inside another integrator (such as Mitsuba's 'aov', which calls the nested "
+            "integrator's per-sample sample()): bdpt renders whole images, its light-tracing strategies "
+            "splat into other pixels and are added as a light image. Render the AOV channels with the aov "
+            "integrator alone (e.g. <integrator type=\"aov\"><string name=\"aovs\" value=\"dd:depth,nn:sh_normal\"/>"
+            "</integrator>, or mi.load_dict({'type': 'aov', 'aovs': 'dd:depth,nn:sh_normal'})) and the image "
+            "with bdpt on its own, then stack the channels.")
 
     def to_string(self):
         return (f"BDPTIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "

@@ -6,8 +6,8 @@ connect to (s>=2), written to the light-vertex store (store.LightStore)."""
 import drjit as dr
 import mitsuba as mi
 
-from .connect import (CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w,
-                      sample_bsdf, smooth_mask)
+from . import gradients
+from .connect import CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w, smooth_mask
 from .jitmath import pdf_w_to_a, safe_div
 from .rays import spawn, spawn_to
 from .roulette import roulette
@@ -23,8 +23,7 @@ class LightTracer:
     def start(self, sampler, n, film):
         c = self.ctx
         active = dr.full(mi.Bool, True, n)
-        e = c.emitters.sample_emission(c.time, sampler.next_1d(), sampler.next_2d(),
-                                       sampler.next_2d(), active)
+        e = gradients.sample_emission(c, c.time, sampler.next_1d(), sampler.next_2d(), sampler.next_2d(), active)
         active = e.active
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
@@ -107,7 +106,7 @@ class LightTracer:
         """Sample the next direction in importance mode (the adjoint BSDF); update throughput,
         MIS quantities and the roulette. Returns the next ray and the updated state."""
         c = self.ctx
-        bs, bsdf_w = sample_bsdf(bsdf, CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active, c.diffuse)
+        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active)
         wo_world = si.to_world(bs.wo)
         corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
         active = active & ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)

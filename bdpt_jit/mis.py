@@ -45,17 +45,21 @@ class MIS:
     arrays (or Python floats), so they trace into any kernel, symbolic or evaluated, and
     differentiate."""
 
-    def __init__(self, kind: str = 'power', strategies='bdpt'):
+    def __init__(self, kind: str = 'power', strategies='bdpt', detached=False):
         if kind not in ('power', 'balance', 'uniform'):
             raise ValueError(f"mis must be power, balance or uniform, got {kind!r}")
         if isinstance(strategies, str):
             strategies = StrategySet(strategies)
         self.kind = kind
         self.s = strategies
+        self.detached = detached      # weights without derivatives (gradients.py)
 
     # ------------------------------------------------------------------ heuristic
     def h(self, x):
-        """h(x) = x^beta, the ratio p_i / p_s under the heuristic [eq. 17, 18]."""
+        """h(x) = x^beta, the ratio p_i / p_s under the heuristic [eq. 17, 18]. Every weight is
+        built from h's values, so detaching here detaches all of them."""
+        if self.detached:
+            x = dr.detach(x)
         if self.kind == 'power':
             return x * x                                   # [eq. 18] beta = 2
         if self.kind == 'balance':

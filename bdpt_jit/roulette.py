@@ -9,7 +9,8 @@ import drjit as dr
 def roulette(beta, beta_start, depth, rr_depth, active, u):
     """Returns (beta, active) after the roulette at ``depth`` (edges so far); survival is
     min(max(beta) / beta_start, 0.95) from ``rr_depth`` on."""
-    q = dr.minimum(dr.max(beta) * dr.select(beta_start > 0, dr.rcp(beta_start), 0.0), 0.95)
+    # the survival probability is a sampling decision: no derivative (gradients.py)
+    q = dr.minimum(dr.max(dr.detach(beta)) * dr.select(beta_start > 0, dr.rcp(dr.detach(beta_start)), 0.0), 0.95)
     rr = active & (depth >= rr_depth)
     beta = dr.select(rr, beta * dr.rcp(dr.select(q > 0, q, 1.0)), beta)
     active = active & (~rr | (u < q))

@@ -882,7 +882,7 @@ def test_guard_connection_nearly_touching():
     assert np.all(np.array(si_c.is_valid() & si_l.is_valid()))
     si_c.p = mi.Point3f(mi.Float(deltas), 0.0, 0.3)
     si_l.p = mi.Point3f(0.0, mi.Float(deltas), 0.3)
-    v = StoredVertex.make(si_l, si_l.bsdf(), mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.UInt32(1))
+    v = StoredVertex.make(si_l, mi.Float(0.0), si_l.bsdf(), mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.UInt32(1))
     st = StoredVertex.allocate(n)
     StoredVertex.store(st, v, dr.arange(mi.UInt32, n), mi.Bool(True))
     L = CameraTracer(ctx).connect_one(StoredVertex, st, dr.arange(mi.UInt32, n), si_c, si_c.bsdf(), mi.UInt32(1),
