@@ -162,6 +162,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         parameters, pass by pass, so that memory is bounded by the pass size, not by spp."""
         for img in self.differentiable_passes(scene, params, sensor, seed, spp):
             dr.backward_from(img * grad_in)
+            dr.eval()                   # the gradients accumulated so far: no graph kept across passes
 
     def differentiable_passes(self, scene, params, sensor, seed, spp):
         """Yields, pass by pass, a differentiable image of that pass's share of the render
