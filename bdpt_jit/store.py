@@ -12,7 +12,7 @@ import mitsuba as mi
 
 # Every field a light vertex can need, in storage order. A scene stores only those its BSDFs
 # and shapes read (record_type): scatter and gather cost per word on the CPU (measured: storing
-# 35-word records took ~140 ms of a 720 ms render; 25 words +20% samples/s).
+# 35-word records took ~140 ms of a 720 ms render; 25 words +20% samples/s; at most 33 now).
 FIELDS = {
     'p': mi.Point3f,          # position
     'err': mi.Float,          # bound on the position's floating-point error (rays.RayOffsets)
