@@ -35,6 +35,10 @@ class CameraModel:
     def lens_point(self, ray):
         raise NotImplementedError
 
+    def sample_ray(self, time, u_wavelength, film_sample, aperture_sample):
+        """The primary ray and its weight (Mitsuba's ``sample_ray``)."""
+        return self.sensor.sample_ray(time, u_wavelength, film_sample, aperture_sample)
+
     def first_edge_dist2(self, ray, p):
         """Squared length of the first edge, from the lens point to the first vertex ``p``."""
         return dr.squared_norm(p - self.lens_point(ray))
