@@ -146,11 +146,25 @@ class CameraTracer:
             j += 1
         return L
 
-    def scatter(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
-        """Sample the next direction; update throughput, MIS quantities and the roulette.
-        Returns the next ray and the updated state."""
+    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+        """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
+        is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
-        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_RADIANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+        u1, u2 = sampler.next_1d(), sampler.next_2d()
+        ray, beta, d_vcm, d_vc, active, is_delta = self.scatter(
+            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+        si_next = gradients.intersect(c, ray, active)
+        if c.ad:
+            beta = beta * gradients.edge_ratio(c, True, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
+            si_next = gradients.attach_wi(c, si_next, si.p)
+        return ray, si_next, beta, d_vcm, d_vc, active
+
+    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+        """Sample the next direction (lobe and direction samples ``u1``, ``u2``); update
+        throughput, MIS quantities and the roulette. Returns the next ray, the updated state
+        and the delta mask (None in scenes without delta lobes)."""
+        c = self.ctx
+        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_RADIANCE, si, u1, u2, active)
         active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
         beta = beta * bsdf_w
         wo_world = si.to_world(bs.wo)
@@ -164,7 +178,8 @@ class CameraTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                        bs.pdf, pdf_rev_w, is_delta)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        return spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time), beta, d_vcm, d_vc, active
+        ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time)
+        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
 
     # ------------------------------------------------------------------ walk
     @dr.syntax
@@ -177,7 +192,7 @@ class CameraTracer:
         beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
 
-        si = scene.ray_intersect(ray)
+        si = gradients.intersect(c, ray, True, primary=True)     # in solid angle: no edge factor
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         L = mi.Color3f(0.0)
@@ -213,10 +228,9 @@ class CameraTracer:
                 L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos)
 
             # ---------------- continue the walk ----------------
-            ray, beta, d_vcm, d_vc, active = self.scatter(
-                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             prev = mi.Interaction3f(si)
-            si = scene.ray_intersect(ray, active)
+            ray, si, beta, d_vcm, d_vc, active = self.advance(
+                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
             if dr.hint(c.strategies.trace_env, mode='scalar'):

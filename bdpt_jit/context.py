@@ -28,6 +28,14 @@ def diffuse_table(scene):
     return table if table.any else None
 
 
+class _NoSplats:
+    """A camera seen as one that no light path reaches (for StrategySet)."""
+    reachable = False
+
+    def __init__(self, camera):
+        self.plugin = getattr(camera, 'plugin', 'camera')
+
+
 class Context:
     """Fields (all set here, none added later):
 
@@ -53,7 +61,7 @@ class Context:
     ad                 a differentiable pass (gradients.py): detached sampling, values with derivatives
     """
 
-    def __init__(self, scene, sensor, settings, spp, ad=False):
+    def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=False):
         self.scene, self.sensor = scene, sensor
         self.camera = camera_for(sensor)
         self.offsets = RayOffsets(scene)
@@ -64,6 +72,12 @@ class Context:
         self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
                                                 self.camera, self.hide_emitters)
         self.ad = ad
+        if ad_geometry:
+            # derivatives with respect to geometry: light-tracing splats land where their vertex
+            # projects, and moving geometry moves them across pixels (a boundary term bdpt does
+            # not have): their strategies leave the partition of unity (gradients.py)
+            self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
+                                                    _NoSplats(self.camera), self.hide_emitters)
         self.mis = MIS(settings['mis'], self.strategies, detached=ad)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']

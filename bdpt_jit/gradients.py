@@ -1,19 +1,29 @@
 """Differentiable rendering: the derivative of a bdpt image with respect to scene parameters
-(BSDF and emitter parameters), in forward and reverse mode, pass by pass.
+(BSDF and emitter parameters, shape vertex positions), in forward and reverse mode, pass by pass.
 
-Detached sampling, as Mitsuba's ``prb``: every direction, position and density is sampled
-and computed without derivatives; the values that multiply a path's throughput (BSDF values,
-emitted radiance) are evaluated again with derivatives, and their gradient replaces that of
-the sampled weight: for a smooth BSDF sample the weight f cos / p becomes, for derivatives,
-f_ad cos / detach(p). The MIS weights are detached (mis.MIS with ``detached``): any fixed
-weights that sum to one over the strategies leave every strategy's estimator unbiased, so the
-sum of the weighted derivative estimators is an unbiased estimator of the derivative of the
-image, for every parameter on which neither the sampled points nor the visibility depend:
-reflectances, roughnesses, specular reflectances and transmittances, emitted radiance and
-intensity, environment texels. Not handled: parameters that move geometry (shape vertices and
-transforms: visibility silhouettes and the change of the sampled points with the parameter)
-and parameters on which a delta lobe's direction depends (the index of refraction of a smooth
-dielectric): they are refused (``check_parameters``).
+Detached sampling in path space. Every random decision (directions, emitter and lens samples,
+lobes, roulette) is made without derivatives, and every density and MIS weight is detached.
+The vertices are material points of the surfaces (Mitsuba's ``RayFlags.FollowShape``): when a
+shape moves, a vertex found on it moves with it, at fixed barycentric coordinates. A path's
+contribution in the area measure, Le G f G f ... We, is then a differentiable function of the
+parameters at fixed random numbers, and its density in the area measure does not depend on
+them (for BSDF and emitter parameters, and for rigid motions of shapes, whose area elements
+do not change). So each edge multiplies the throughput by a ratio that is 1 in value and
+carries the derivative of that edge's factor: for the edge from x_i to x_{i+1},
+
+    [f_i(x_{i-1} -> x_i -> x_{i+1}) |cos(n_{i+1}, w)| / |x_{i+1} - x_i|^2]_ad / detach(same)
+
+(``edge_ratio``); emission, emitter sampling and escaping rays have ratios of their own. Any
+fixed weights that sum to one over the strategies leave every strategy's estimator unbiased,
+so the sum of the weighted derivative estimators is an unbiased estimator of the derivative
+of the image, as long as the parameter moves no visibility boundary: silhouettes of occluders,
+of emitters and of the image's own content are not handled (their boundary terms are missing:
+a parameter that moves an edge seen against something else gets a biased derivative there).
+
+Not handled, and refused (``check_parameters``): sensor parameters, point and spot light
+positions, the index of refraction of a smooth dielectric (it turns a delta lobe), and shape
+parameters in scenes with delta BSDFs (a specular chain constrains its vertices: its
+derivative needs the manifold of specular paths, Jakob and Marschner 2012).
 
 The primal image is never changed: ``dr.replace_grad`` keeps every primal value and only
 exchanges gradients.
@@ -25,92 +35,182 @@ import mitsuba as mi
 from . import connect
 from .jitmath import safe_div, sel
 
-# parameter keys whose derivative would need moving geometry or delta-direction derivatives
-_REFUSED = ('vertex_positions', 'vertex_normals', 'vertex_texcoords', 'to_world', 'faces', 'center',
-            'radius', 'position', 'direction')
+# parameter keys whose derivative bdpt does not compute (see the module docstring)
+_REFUSED_LEAVES = ('position', 'direction', 'x_fov', 'focus_distance', 'aperture_radius', 'center', 'radius')
+_GEOMETRY_LEAVES = ('vertex_positions', 'vertex_normals', 'to_world')
 # BSDFs whose index of refraction turns a delta lobe's direction
 _DELTA_IOR = ('SmoothDielectric', 'ThinDielectric')
 
 
-def check_parameters(params):
-    """Refuse gradient-enabled parameters whose derivative bdpt does not compute (see above)."""
-    if params is None:
-        return
+def _grad_enabled_keys(params):
+    out = []
     for key in params.keys():
         try:
             value = params[key]
         except Exception:
             continue
-        if not dr.grad_enabled(value):
-            continue
+        if dr.grad_enabled(value):
+            out.append(key)
+    return out
+
+
+def check_parameters(params, scene=None, has_delta=False):
+    """Refuse gradient-enabled parameters whose derivative bdpt does not compute."""
+    if params is None:
+        return
+    for key in _grad_enabled_keys(params):
         leaf = key.split('.')[-1]
         node = params.properties[key][2] if hasattr(params, 'properties') else None
-        delta_ior = (leaf in ('eta', 'int_ior', 'ext_ior') and node is not None
-                     and str(node.class_name()) in _DELTA_IOR)
-        if leaf in _REFUSED or key.endswith('to_world') or delta_ior:
+        cls = str(node.class_name()) if node is not None else ''
+        why = None
+        if leaf in _REFUSED_LEAVES or isinstance(node, mi.Sensor) or (leaf == 'to_world' and isinstance(node, mi.Emitter)):
+            why = 'sensor parameters and the placement of point, spot and analytic shapes'
+        elif leaf in ('eta', 'int_ior', 'ext_ior') and cls in _DELTA_IOR:
+            why = "the index of refraction of a smooth dielectric (it turns a delta lobe's direction)"
+        elif (leaf in _GEOMETRY_LEAVES or key.endswith('to_world')) and has_delta:
+            why = 'shape geometry in a scene with delta (specular) BSDFs (specular chains constrain their vertices)'
+        if why is not None:
             raise NotImplementedError(
-                f"bdpt: gradients with respect to '{key}' are not supported: bdpt differentiates "
+                f"bdpt: gradients with respect to '{key}' are not supported: {why}. bdpt differentiates "
                 "BSDF and emitter values (reflectance, roughness, specular reflectance/transmittance, "
-                "radiance, intensity, irradiance, environment texels); parameters that move geometry "
-                "or a delta lobe's direction (shape vertices and transforms, the index of refraction "
-                "of a smooth dielectric) need silhouette and sampling derivatives it does not have")
+                "radiance, intensity, irradiance, environment texels) and shape vertex positions in "
+                "scenes without delta BSDFs (interior derivatives: silhouettes are not handled)")
+
+
+def geometry_keys(params):
+    """The gradient-enabled shape parameters."""
+    if params is None:
+        return []
+    return [k for k in _grad_enabled_keys(params)
+            if k.split('.')[-1] in _GEOMETRY_LEAVES or k.endswith('to_world')]
+
+
+def intersect(c, ray, active, primary=False):
+    """scene.ray_intersect; in a differentiable pass the hit is a material point of its shape
+    (RayFlags.FollowShape): it moves with the shape's parameters. A camera ray's first hit
+    slides along its ray instead (``primary``): a pixel sees through a fixed footprint of
+    directions, so its first vertex is parametrised by the direction (solid angle)."""
+    if not c.ad or primary:
+        return c.scene.ray_intersect(ray, active)
+    return c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+
+
+def attach_wi(c, si, prev_p):
+    """In a differentiable pass: the incoming direction of ``si`` from the previous vertex's
+    position, both with derivatives (si.wi from the traced ray has none)."""
+    if c.ad:
+        si.wi = si.to_local(dr.normalize(prev_p - si.p))
+    return si
+
+
+def ratio(x):
+    """1 in value, with the derivative of x / detach(x): the factor x of a throughput whose
+    value is already in it, differentiated (0 derivative where x is 0)."""
+    d = dr.detach(x)
+    q = dr.select(d != 0, x / dr.select(d != 0, d, 1.0), 0.0)
+    return dr.replace_grad(dr.ones(type(x), dr.width(x)), q)
+
+
+def edge_ratio(c, camera_side, si, bsdf, si_next, d_escape, u, is_delta, active):
+    """The edge from the vertex ``si`` (its wi attached) to the next vertex ``si_next``
+    (``d_escape``: the sampled direction, for lanes that left the scene): [f G]_ad / detach.
+    Delta lobes: the gradient of the sampled weight (``u``: the lobe and direction samples)."""
+    if not c.ad:
+        return 1.0
+    hit = active & si_next.is_valid()
+    to_next = si_next.p - si.p
+    dist2 = dr.squared_norm(to_next)
+    w = dr.select(hit, to_next * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0)), d_escape)
+    if camera_side:
+        f, _, _ = connect.eval_camera_vertex(si, bsdf, w, active, None)
+    else:
+        f, _, _, _ = connect.eval_light_vertex(si, bsdf, w, active, c.exact_adjoint, None)
+    g = dr.select(hit, dr.abs(dr.dot(si_next.n, w)) * safe_div(1.0, dist2), 1.0)
+    out = ratio(f * g)
+    if is_delta is not None:
+        mode = connect.CTX_RADIANCE if camera_side else connect.CTX_IMPORTANCE
+        _, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
+        out = dr.select(is_delta, ratio(w_delta), out)
+    return dr.select(active, out, 1.0)
 
 
 def sample_bsdf(c, bsdf, mode, si, u1, u2, active):
-    """connect.sample_bsdf with detached sampling: the sample (direction, density, lobe) carries
-    no derivative; the weight's gradient is that of f_ad cos / detach(pdf) for smooth samples
-    and that of the sampled weight (specular reflectance or transmittance) for delta ones."""
+    """connect.sample_bsdf; in a differentiable pass without derivatives (the edge's
+    derivative comes with ``edge_ratio`` once the next vertex is known)."""
     if not c.ad:
         return connect.sample_bsdf(bsdf, mode, si, u1, u2, active, c.diffuse)
     with dr.suspend_grad():
-        bs, w = connect.sample_bsdf(bsdf, mode, si, u1, u2, active, c.diffuse)
-    f_ad = bsdf.eval(mode, si, bs.wo, active)
-    _, w_delta = bsdf.sample(mode, si, u1, u2, active)
-    smooth_grad = f_ad * safe_div(1.0, bs.pdf)
-    if c.has_delta:
-        is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        smooth_grad = dr.select(is_delta, w_delta, smooth_grad)
-    return bs, dr.replace_grad(w, dr.select(active, smooth_grad, 0.0))
+        return connect.sample_bsdf(bsdf, mode, si, u1, u2, active, c.diffuse)
 
 
 def sample_direct(c, si, u, active):
-    """EmitterTable.sample_direct (s=1) with detached sampling: the emitter sample carries no
-    derivative; the weight Le / pdf takes the gradient of the emitted value evaluated again
-    (``eval_direction``) over the detached density."""
+    """EmitterTable.sample_direct (s=1). In a differentiable pass the emitter point is a
+    material point (Mitsuba's sampling with derivatives), the density detached, and the weight
+    Le / pdf_w = Le |cos_y| / (d^2 pdf_a) takes the derivative of Le |cos_y| / d^2."""
     if not c.ad:
         return c.emitters.sample_direct(si, u, active)
-    with dr.suspend_grad():
-        ds, w = c.emitters.sample_direct(si, u, active)
+    ds, w = c.emitters.sample_direct(si, u, active)
     le = ds.emitter.eval_direction(si, ds, active & (ds.pdf > 0))
-    return ds, dr.replace_grad(w, le * safe_div(1.0, ds.pdf))
+    k = c.emitters.kinds(ds.emitter)
+    finite = dr.isfinite(ds.dist)
+    geo = dr.select(finite, safe_div(1.0, dr.square(ds.dist)), 1.0)
+    geo = sel(k.area, geo * dr.abs(dr.dot(ds.n, ds.d)), geo)
+    ds.pdf = dr.detach(ds.pdf)
+    return ds, dr.detach(w) * ratio(le * geo)
 
 
 def sample_emission(c, time, u_sel, u_pos, u_dir, active):
-    """EmitterTable.sample_emission with detached sampling: the light subpath's start carries no
-    derivative except its throughput, whose gradient is that of the emitted value evaluated
-    again per emitter kind over the detached emission density."""
+    """EmitterTable.sample_emission. In a differentiable pass everything is sampled without
+    derivatives except the emitter point of area emitters, a material point of its shape;
+    the emitted value's derivative comes with ``emission_ratio`` at the first hit."""
     if not c.ad:
         return c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active)
     with dr.suspend_grad():
         e = c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active)
+    if e.kinds.area is not False:
+        ps, _ = e.emitter.sample_position(time, u_pos, e.active & e.kinds.area)
+        p = sel(e.kinds.area, ps.p, e.origin)
+        n = sel(e.kinds.area, ps.n, e.n_e)
+        e.y0_p, e.y0_n = p, n
+    else:
+        e.y0_p, e.y0_n = e.origin, e.n_e
+    return e
+
+
+def emission_ratio(c, e, si1, u_dir, time, active):
+    """The light subpath's first edge y0 -> y1: [Le(y0 -> y1) |cos_y0| |cos_y1| / d^2]_ad /
+    detach for area emitters, [I(w) |cos_y1| / d^2] for points and spots, [Le(w) |cos_y1|]
+    for environments and directional lights (y0 a direction: no distance)."""
+    if not c.ad:
+        return 1.0
     k, emitter = e.kinds, e.emitter
+    to = si1.p - e.y0_p
+    dist2 = dr.squared_norm(to)
+    w = to * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0))
+    w = sel(k.infinite, e.d, w)
+    cos1 = dr.abs(dr.dot(si1.n, w))
     value = mi.Color3f(0.0)
     if k.area is not False:
         si_e = mi.SurfaceInteraction3f(e.si_e)
-        si_e.wi = si_e.to_local(e.d)
-        value = sel(k.area, emitter.eval(si_e, e.active & k.area) * e.cos_e, value)
-    delta = k.delta
-    if delta is not False:
-        # points and spots (at distance 1 along the emitted direction) and directional lights:
-        # the weight of Mitsuba's sample_direction is the intensity (irradiance) itself
+        si_e.p, si_e.n = e.y0_p, e.y0_n
+        si_e.sh_frame = mi.Frame3f(e.y0_n)
+        si_e.wi = si_e.to_local(w)
+        le = emitter.eval(si_e, active & k.area)
+        value = sel(k.area, le * dr.abs(dr.dot(e.y0_n, w)) * cos1 * safe_div(1.0, dist2), value)
+    if k.delta_pos is not False:
         it = dr.zeros(mi.Interaction3f)
-        it.p, it.time = e.origin + e.d, time
-        _, w_delta = emitter.sample_direction(it, u_dir, e.active & delta)
-        value = sel(delta, w_delta, value)
-    if k.env is not False:
-        # (eval, not eval_direction: Mitsuba's envmap reads the direction from ds.p - it.p there)
-        si_env = dr.zeros(mi.SurfaceInteraction3f)
-        si_env.wi, si_env.time = e.d, time           # e.d leaves the environment
-        value = sel(k.env, emitter.eval(si_env, e.active & k.env), value)
-    e.beta = dr.replace_grad(e.beta, value * safe_div(1.0, e.pdf_emit_w))
-    return e
+        it.p, it.time = si1.p, time
+        _, w_pt = emitter.sample_direction(it, u_dir, active & k.delta_pos)    # I(w) / d^2
+        value = sel(k.delta_pos, w_pt * cos1, value)
+    if k.infinite is not False:
+        if k.delta_dir is not False:
+            it = dr.zeros(mi.Interaction3f)
+            it.p, it.time = si1.p, time
+            _, w_dir = emitter.sample_direction(it, u_dir, active & k.delta_dir)
+            value = sel(k.delta_dir, w_dir * cos1, value)
+        if k.env is not False:
+            # (eval, not eval_direction: Mitsuba's envmap reads the direction from ds.p - it.p there)
+            si_env = dr.zeros(mi.SurfaceInteraction3f)
+            si_env.wi, si_env.time = e.d, time                # e.d leaves the environment
+            value = sel(k.env, emitter.eval(si_env, active & k.env) * cos1, value)
+    return dr.select(active, ratio(value), 1.0)

@@ -20,8 +20,8 @@ from .film import FilmAccumulator
 from .light_path import LightTracer
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, RenderHooks, caused_by_interrupt, count_passes,
                      light_capacity, pass_seed, plan_passes)
-from .gradients import check_parameters
-from .scene_check import check_scene, check_variant
+from .gradients import check_parameters, geometry_keys
+from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 from .store import LightStore
 
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
@@ -168,13 +168,19 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         """Yields, pass by pass, a differentiable image of that pass's share of the render
         (film.FilmAccumulator.pass_image), traced with evaluated loops (Dr.Jit 1.5.0's AD
         through symbolic loops is unreliable) and detached sampling (gradients.py)."""
-        check_parameters(params)
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
+        check_parameters(params, scene, scene_has_delta_bsdf(scene))
         if spp == 0:
             spp = sensor.sampler().sample_count()
         check_scene(scene, sensor)
-        ctx = Context(scene, sensor, self.settings, spp, ad=True)
+        geometry = bool(geometry_keys(params))
+        if geometry and self.technique == 'lt':
+            raise NotImplementedError(
+                "bdpt: gradients with respect to geometry need camera subpaths: with technique 'lt' every "
+                "path reaches the image through a splat whose pixel moves with the geometry (a boundary "
+                "term); use technique 'bdpt' or 'pt'")
+        ctx = Context(scene, sensor, self.settings, spp, ad=True, ad_geometry=geometry)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
         # the AD graph of a sample holds every vertex's values: passes 8 times smaller

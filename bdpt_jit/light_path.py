@@ -8,7 +8,7 @@ import mitsuba as mi
 
 from . import gradients
 from .connect import CTX_IMPORTANCE, adjoint_correction, adjoint_eval, eval_light_vertex, reverse_pdf_w, smooth_mask
-from .jitmath import pdf_w_to_a, safe_div
+from .jitmath import pdf_w_to_a, safe_div, sel
 from .rays import spawn, spawn_to
 from .roulette import roulette
 
@@ -23,7 +23,8 @@ class LightTracer:
     def start(self, sampler, n, film):
         c = self.ctx
         active = dr.full(mi.Bool, True, n)
-        e = gradients.sample_emission(c, c.time, sampler.next_1d(), sampler.next_2d(), sampler.next_2d(), active)
+        u_sel, u_pos, u_dir = sampler.next_1d(), sampler.next_2d(), sampler.next_2d()
+        e = gradients.sample_emission(c, c.time, u_sel, u_pos, u_dir, active)
         active = e.active
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
@@ -33,7 +34,13 @@ class LightTracer:
 
         d_vc = c.mis.light_init(e.pdf_emit_w, e.cos_e, e.kinds.delta)
         active &= c.max_depth_edges >= 2
-        si = c.scene.ray_intersect(e.ray, active)
+        si = gradients.intersect(c, e.ray, active)
+        if c.ad:
+            beta = e.beta * gradients.emission_ratio(c, e, si, u_dir, c.time, active & si.is_valid())
+            # wi from the emitter point (a material point); an infinite emitter's y0 is a direction
+            si.wi = sel(e.kinds.infinite, si.wi, si.to_local(dr.normalize(e.y0_p - si.p)))
+        else:
+            beta = e.beta
         if c.stats is not None:
             c.stats.ray('light', active, si.is_valid())
         active &= si.is_valid()
@@ -42,7 +49,7 @@ class LightTracer:
         dist2 = c.emitters.first_edge_dist2(e, si)
         d_vcm, d_vc = c.mis.light_first_hit(d_vc, e.pdf_emit_w, pdf_direct, dist2, cos_hit)
         depth = dr.full(mi.UInt32, 1, n)
-        return active, si, e.beta, d_vcm, d_vc, depth
+        return active, si, beta, d_vcm, d_vc, depth
 
     def splat_emitter_vertex(self, u, e, film, active):
         c = self.ctx
@@ -102,11 +109,26 @@ class LightTracer:
         if c.layers is not None:
             c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
-    def scatter(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
-        """Sample the next direction in importance mode (the adjoint BSDF); update throughput,
-        MIS quantities and the roulette. Returns the next ray and the updated state."""
+    def advance(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+        """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
+        is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
-        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_IMPORTANCE, si, sampler.next_1d(), sampler.next_2d(), active)
+        u1, u2 = sampler.next_1d(), sampler.next_2d()
+        ray, beta, d_vcm, d_vc, active, is_delta = self.scatter(
+            sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+        si_next = gradients.intersect(c, ray, active)
+        if c.ad:
+            beta = beta * gradients.edge_ratio(c, False, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
+            si_next = gradients.attach_wi(c, si_next, si.p)
+        return ray, si_next, beta, d_vcm, d_vc, active
+
+    def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+        """Sample the next direction in importance mode (the adjoint BSDF; lobe and direction
+        samples ``u1``, ``u2``); update throughput, MIS quantities and the roulette. Returns the
+        next ray, the updated state and the delta mask (None without delta lobes)."""
+        c = self.ctx
+        beta_in = beta
+        bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_IMPORTANCE, si, u1, u2, active)
         wo_world = si.to_world(bs.wo)
         corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
         active = active & ok & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
@@ -125,11 +147,14 @@ class LightTracer:
         else:
             beta = beta * (bsdf_w * corr)         # no delta lobe in the scene: none traced
             pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active, c.diffuse)
+        if c.ad:   # the factor without derivatives: the edge's derivative comes with edge_ratio
+            beta = beta_in * dr.detach(beta * safe_div(1.0, dr.detach(beta_in)))
         cos_out = dr.abs(dr.dot(si.n, wo_world))
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        return spawn(si.p, si.n, err, wo_world, si.time), beta, d_vcm, d_vc, active
+        ray = spawn(si.p, si.n, err, wo_world, si.time)
+        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
 
     @dr.syntax
     def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count):
@@ -162,9 +187,8 @@ class LightTracer:
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
-            ray, beta, d_vcm, d_vc, active = self.scatter(
+            ray, si, beta, d_vcm, d_vc, active = self.advance(
                 sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
-            si = c.scene.ray_intersect(ray, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('light', active, si.is_valid())
             active &= si.is_valid()

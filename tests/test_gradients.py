@@ -102,16 +102,20 @@ def test_primal_unchanged_with_gradients_enabled():
     assert np.array_equal(plain, with_grad)
 
 
-def test_geometry_parameters_are_refused_with_a_reason():
-    scene = load('cornell-box.xml')
+def test_geometry_with_delta_bsdfs_is_refused_with_a_reason():
+    """Shape parameters in a scene with mirrors or glass (specular chains constrain their
+    vertices) are refused, naming the key."""
+    scene = load('paper-fig6.xml')
     params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith('vertex_positions'))
-    attach(params, key)
-    img = mi.render(scene, params, integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
-    with pytest.raises(Exception) as e:
-        dr.backward(img)
-    text = repr(e.value) + repr(e.value.__cause__)
-    assert 'vertex_positions' in text and 'not supported' in text
+    for key in (next(k for k in params.keys() if k.endswith('to_world') and 'floor' in k),):
+        scene = load('paper-fig6.xml')
+        params = mi.traverse(scene)
+        attach(params, key)
+        img = mi.render(scene, params, integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
+        with pytest.raises(Exception) as e:
+            dr.backward(img)
+        text = repr(e.value) + repr(e.value.__cause__)
+        assert key in text and 'not supported' in text
 
 
 # ---------------------------------------------------------------------------- finite differences
@@ -200,6 +204,53 @@ def test_envmap_texels_derivative_agrees_with_finite_differences():
     fd = fd_batches(scene, key, delta, 0.05, integ, 16, 12)
     assert np.abs(ad).max() > 0
     assert_agree(ad, fd, 'envmap region')
+
+
+def open_floor(light_y=4.0):
+    """A mesh area light (a small cube) above a floor (a flat mesh box) that fills the view; the
+    light is out of the camera's view, so moving it or the floor moves no visibility boundary."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        'type': 'scene',
+        'sensor': {'type': 'perspective', 'fov': 40,
+                   'to_world': T().look_at(origin=[0, 1.5, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': RES, 'height': RES, 'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent'}},
+        'floor': {'type': 'cube', 'to_world': T().translate([0, -0.1, 0]).scale([100, 0.1, 100]),
+                  'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': 0.6}}},
+        'light': {'type': 'cube', 'to_world': T().translate([0.5, light_y, 0]).scale(0.3),
+                  'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': 40.0}}},
+    })
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+@pytest.mark.parametrize('shape,direction', [('light', (0.0, 1.0, 0.0)), ('light', (1.0, 0.0, 0.0)),
+                                             ('floor', (0.0, 1.0, 0.0))])
+def test_vertex_translation_agrees_with_finite_differences(shape, direction, technique):
+    """The interior derivative with respect to shape vertices (gradients.py: material-point
+    vertices, the edge factors differentiated; a camera ray's first hit slides along the ray;
+    light-tracing splats out of the derivative's partition of unity): translating the light up
+    or sideways, or the floor (seen by the camera) up."""
+    scene = open_floor()
+    params = mi.traverse(scene)
+    key = f'{shape}.vertex_positions'
+    n = dr.width(params[key]) // 3
+    delta = dr.ravel(mi.Point3f(*(mi.Float(c) + dr.zeros(mi.Float, n) for c in direction)))
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'technique': technique})
+    ad = forward_batches(scene, key, delta, integ, 64, 12)
+    fd = fd_batches(scene, key, delta, 0.02, integ, 64, 12)
+    assert np.abs(ad.mean()) > 0
+    assert_agree(ad, fd, f'{shape} {direction} {technique}')
+
+
+def test_geometry_with_light_tracing_alone_is_refused():
+    scene = open_floor()
+    params = mi.traverse(scene)
+    attach(params, 'light.vertex_positions')
+    img = mi.render(scene, params, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'lt'}), spp=1)
+    with pytest.raises(Exception) as e:
+        dr.backward(img)
+    assert "technique 'lt'" in repr(e.value) + repr(e.value.__cause__)
 
 
 # ---------------------------------------------------------------------------- techniques, prb
