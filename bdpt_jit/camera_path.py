@@ -100,7 +100,7 @@ class CameraTracer:
         return dr.select(active, beta * f * em_w * w, 0.0)
 
     def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None,
-                    level=None):
+                    level=None, err=None):
         """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot`` (at
         ``level`` of the storage: needed by records that do not store the depth)."""
         c = self.ctx
@@ -117,7 +117,8 @@ class CameraTracer:
         # The guard where the contribution is formed: vertices ~1e-19 apart give a subnormal
         # dist2 whose inverse overflows (and a NaN once the power weight, 0 there, multiplies it)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
-        blocked = c.scene.ray_test(spawn_to(si.p, si.n, c.offsets.error(si.p, si.shape), y.p, y.n, v.err, si.time,
+        err = c.offsets.error(si.p, si.shape) if err is None else err
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, y.p, y.n, v.err, si.time,
                                             c.offsets.far_rel), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
@@ -140,9 +141,10 @@ class CameraTracer:
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(depth + 1, c.max_depth_edges))
         L = mi.Color3f(0.0)
         j = mi.UInt32(0)
+        err = c.offsets.error(si.p, si.shape)         # once for all the connections of si
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.connect_one(record, st_v, slot_of(j, idx), si, bsdf, depth, beta, d_vcm, d_vc,
-                                  active, film_pos, level=j)
+                                  active, film_pos, level=j, err=err)
             j += 1
         return L
 
