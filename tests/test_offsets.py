@@ -173,3 +173,31 @@ def test_every_ray_leaves_through_rays_py():
             continue
         text = f.read_text()
         assert 'spawn_ray' not in text, f'{f.name} spawns a ray with Mitsuba\'s fixed epsilon'
+
+
+# ---------------------------------------------------------------------------- per strategy
+@pytest.mark.parametrize('placement', ['scale_1e-4', 'scale_1e5', 'move_1e3_x'])
+def test_every_strategy_is_the_same_at_every_scale(placement):
+    """Each (s,t) strategy alone (its weighted layer, parameter strategy_images), scaled or
+    moved against the box at scale 1, same seeds: a strategy whose shadow ray kept a fixed
+    epsilon (s=1: emitter sampling; s>=2,t>=2: connections; t=1: splats) or whose extension
+    rays self-intersect would move its own layer. Layers holding at least 1% of the image must
+    agree within 0.5% (scaled: exactly, to float rounding)."""
+    def layers(**pl):
+        scene = mi.load_dict(sc.transformed(sc.cornell(RES), **pl))
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'strategy_images': True})
+        out = {}
+        for seed in range(4):
+            mi.render(scene, integrator=integ, spp=SPP, seed=seed)
+            for name, d in integ.strategy_images.items():
+                out[name] = out.get(name, 0.0) + float(np.mean(d['weighted'])) / 4
+        return out
+    ref = layers()
+    mine = layers(**PLACEMENTS[placement])
+    total = sum(ref.values())
+    exact = placement.startswith('scale')
+    for name, v in ref.items():
+        if v < 0.01 * total:
+            continue
+        rel = mine[name] / v - 1
+        assert abs(rel) < (1e-4 if exact else 5e-3), f'{placement}: strategy {name} {rel * 100:+.3f}%'
