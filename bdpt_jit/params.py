@@ -59,7 +59,8 @@ PARAMS = (
           'blocked shadow rays), as the paper\'s Table 1; reported in `integrator.last_render_info`.'),
     Param('samples_per_pass', int, None,
           'Samples traced per kernel launch; bounds memory (light-vertex storage grows with it). '
-          'Automatic: as many as fit the memory budget, rounded to whole samples per pixel.',
+          "Automatic: as many as fit a sixth of the machine's memory (on a GPU half its free memory), "
+          'rounded to whole samples per pixel.',
           minimum=1),
 )
 
