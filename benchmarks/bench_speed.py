@@ -1,5 +1,10 @@
 """Speed of ``bdpt`` against Mitsuba's ``path`` on the SmallVCM Cornell box, both rendered in one run.
 
+``--stages`` adds the time of each stage (light pass: emission, walk, splats, stored vertices;
+camera pass: walk, hits, emitter sampling, connections) for techniques bdpt, pt and lt, timed
+by evaluating the kernels after each stage: the connections' share is the bdpt camera pass
+less the pt camera pass. ``--variant`` picks the backend (e.g. cuda_ad_rgb where a GPU is).
+
 For each integrator: one warm-up render (timed on its own: tracing + kernel compilation + render), then
 ``--repeats`` timed renders whose median gives samples/s. Dr.Jit keeps compiled kernels in a cache on
 disk, so if this was run before, the warm-up may come out cheaper than a true first compilation.
@@ -17,9 +22,6 @@ from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
-
-mi.set_variant('llvm_ad_rgb')
-import bdpt_jit  # noqa: E402,F401  (registers the 'bdpt' integrator)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SCENE = REPO.parent / 'shared' / 'scenes' / 'smallvcm-box' / 'smallvcm-box.xml'
@@ -42,6 +44,59 @@ def timed_render(scene, integrator, spp):
     dr.eval(img)
     dr.sync_thread()
     return time.perf_counter() - t0
+
+
+class StageClock:
+    """Wall time of each stage of bdpt's passes: the integrator's tracers wrapped so that each
+    one's kernels are evaluated (and waited for) before the next stage starts."""
+
+    def __init__(self):
+        self.times = {}
+
+    def install(self):
+        import bdpt_jit.integrator as integ_mod
+        clock = self
+
+        def timed(base, stage):
+            class Timed(base):
+                def trace(self, *a, **kw):
+                    dr.eval()
+                    dr.sync_thread()
+                    t0 = time.perf_counter()
+                    out = super().trace(*a, **kw)
+                    dr.eval()
+                    dr.sync_thread()
+                    clock.times[stage] = clock.times.get(stage, 0.0) + time.perf_counter() - t0
+                    return out
+            return Timed
+        self.saved = (integ_mod.LightTracer, integ_mod.CameraTracer)
+        integ_mod.LightTracer = timed(integ_mod.LightTracer, 'light pass')
+        integ_mod.CameraTracer = timed(integ_mod.CameraTracer, 'camera pass')
+
+    def uninstall(self):
+        import bdpt_jit.integrator as integ_mod
+        integ_mod.LightTracer, integ_mod.CameraTracer = self.saved
+
+
+def stages(args):
+    """Per-stage medians for each technique."""
+    scene = mi.load_file(str(args.scene), res=args.res, max_depth=args.max_depth, spp=args.spp)
+    out = {}
+    for technique in ('bdpt', 'pt', 'lt'):
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': args.max_depth, 'technique': technique, 'mis': args.mis})
+        clock = StageClock()
+        clock.install()
+        try:
+            timed_render(scene, integ, args.spp)            # warm-up (compilation)
+            runs = []
+            for _ in range(args.repeats):
+                clock.times = {}
+                timed_render(scene, integ, args.spp)
+                runs.append(dict(clock.times))
+        finally:
+            clock.uninstall()
+        out[technique] = {k: statistics.median(r.get(k, 0.0) for r in runs) for k in ('light pass', 'camera pass')}
+    return out
 
 
 def bench(name, args):
@@ -67,7 +122,11 @@ def main():
     ap.add_argument('--max-depth', type=int, default=10)
     ap.add_argument('--technique', default='bdpt', choices=['bdpt', 'pt', 'lt'])
     ap.add_argument('--mis', default='power', choices=['power', 'balance', 'uniform'])
+    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--stages', action='store_true', help='also time each stage of bdpt, pt and lt')
     args = ap.parse_args()
+    mi.set_variant(args.variant)
+    import bdpt_jit  # noqa: F401  (registers the 'bdpt' integrator)
     if args.repeats < 1:
         ap.error('--repeats must be at least 1')
 
@@ -88,6 +147,16 @@ def main():
         print(f"{name:<10} {r['first']:>30.3f}s {r['median']:>8.3f}s {r['compile']:>12.3f}s {r['msps']:>12.3f}")
     print()
     print(f"bdpt / path (samples/s): {results['bdpt']['msps'] / results['path']['msps']:.3f}")
+    if args.stages:
+        st = stages(args)
+        print()
+        print(f"{'technique':<10} {'light pass':>11} {'camera pass':>12}   (medians of {args.repeats}, seconds)")
+        for technique, r in st.items():
+            print(f"{technique:<10} {r['light pass']:>11.3f} {r['camera pass']:>12.3f}")
+        conn = st['bdpt']['camera pass'] - st['pt']['camera pass']
+        print(f"connections (bdpt camera pass - pt camera pass): {conn:.3f} s; light pass of bdpt "
+              f"(splats and stored vertices) {st['bdpt']['light pass']:.3f} s, of lt (splats only) "
+              f"{st['lt']['light pass']:.3f} s")
 
 
 if __name__ == '__main__':
