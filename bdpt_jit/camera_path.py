@@ -159,7 +159,10 @@ class CameraTracer:
         if c.ad:
             beta = beta * gradients.edge_ratio(c, True, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
             si_next = gradients.attach_wi(c, si_next, si.p)
-        return ray, si_next, beta, d_vcm, d_vc, active
+        # the edge's length between the vertices, not from the offset origin (rays.py): at grazing
+        # angles the two differ by far more than rounding, and every density would follow t
+        dist2 = dr.squared_norm(si_next.p - si.p)
+        return ray, si_next, beta, d_vcm, d_vc, active, dist2
 
     def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
         """Sample the next direction (lobe and direction samples ``u1``, ``u2``); update
@@ -231,7 +234,7 @@ class CameraTracer:
 
             # ---------------- continue the walk ----------------
             prev = mi.Interaction3f(si)
-            ray, si, beta, d_vcm, d_vc, active = self.advance(
+            ray, si, beta, d_vcm, d_vc, active, dist2 = self.advance(
                 sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
@@ -239,7 +242,7 @@ class CameraTracer:
                 L += self.strategy_env(ray, prev, depth + 1, beta, d_vcm, d_vc,
                                        active & ~si.is_valid(), film_pos)
             active &= si.is_valid()
-            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
 
         film.put_camera(film_pos, L, alpha, mi.Bool(True))

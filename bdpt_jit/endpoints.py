@@ -241,9 +241,10 @@ class EmitterTable:
     def first_edge_dist2(e, si1):
         """Squared length of the first edge y0 -> y1 as the area density of y1 needs it: 1 for
         infinite emitters, whose y0 is a direction (solid-angle measure)."""
+        d2 = dr.squared_norm(si1.p - e.origin)        # between the vertices, not from the offset origin
         if e.kinds.infinite is False:
-            return dr.square(si1.t)
-        return dr.select(e.kinds.infinite, 1.0, dr.square(si1.t))
+            return d2
+        return dr.select(e.kinds.infinite, 1.0, d2)
 
     # ------------------------------------------------------------------ emitter sampling (s=1)
     def small_sphere(self, emitter, ref_p):

@@ -120,7 +120,8 @@ class LightTracer:
         if c.ad:
             beta = beta * gradients.edge_ratio(c, False, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
             si_next = gradients.attach_wi(c, si_next, si.p)
-        return ray, si_next, beta, d_vcm, d_vc, active
+        dist2 = dr.squared_norm(si_next.p - si.p)      # between the vertices (as camera_path.advance)
+        return ray, si_next, beta, d_vcm, d_vc, active, dist2
 
     def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
         """Sample the next direction in importance mode (the adjoint BSDF; lobe and direction
@@ -187,11 +188,11 @@ class LightTracer:
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
-            ray, si, beta, d_vcm, d_vc, active = self.advance(
+            ray, si, beta, d_vcm, d_vc, active, dist2 = self.advance(
                 sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('light', active, si.is_valid())
             active &= si.is_valid()
-            d_vcm, d_vc = c.mis.on_hit(d_vcm, d_vc, dr.square(si.t), dr.abs(dr.dot(si.n, ray.d)))
+            d_vcm, d_vc = c.mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
         return active, si, beta, d_vcm, d_vc, depth, count

@@ -39,6 +39,13 @@ import drjit as dr
 from .strategies import StrategySet
 
 
+def _finite(w):
+    """A weight, 0 where it is not a number: a degenerate vertex (a ray that scraped its own
+    surface, cos ~ 1e-20) overflows the running quantities, and inf * 0 in a sum of densities
+    gives NaN; such a strategy defers to the others (they are infinitely more likely)."""
+    return dr.select(dr.isnan(w), 0.0, w)
+
+
 class MIS:
     """Heuristic and strategy set. ``kind``: power | balance | uniform; ``strategies``: a
     strategies.StrategySet (or a technique name, bdpt | pt | lt, for its full set): a weight
@@ -129,7 +136,7 @@ class MIS:
         w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1
         if self.s.connections:
             w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
-        return 1.0 / (1.0 + w_camera)                       # [eq. 20] w_light = 0
+        return _finite(1.0 / (1.0 + w_camera))              # [eq. 20] w_light = 0
 
     def weight_s1(self, d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z,
                   pdf_rev_w, emitter_is_delta=False):
@@ -145,10 +152,10 @@ class MIS:
         if emitter_is_delta is not False:
             w_light = dr.select(emitter_is_delta, 0.0, w_light)                    # [eq. 20] p_0 = 0
         if not self.s.connections:
-            return 1.0 / (w_light + 1.0)                    # [eq. 20] w_camera = 0
+            return _finite(1.0 / (w_light + 1.0))           # [eq. 20] w_camera = 0
         w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22]
                     * (d_vcm + d_vc * self.h(pdf_rev_w)))
-        return 1.0 / (w_light + 1.0 + w_camera)             # [eq. 20]
+        return _finite(1.0 / (w_light + 1.0 + w_camera))    # [eq. 20]
 
     def weight_connect(self, l_vcm, l_vc, c_vcm, c_vc, pdf_cam_to_light_a, pdf_light_to_cam_a,
                        pdf_light_rev_w, pdf_cam_rev_w):
@@ -161,7 +168,7 @@ class MIS:
             return 0.0 * l_vcm
         w_light = self.h(pdf_cam_to_light_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))    # [eq. 21, 22]
         w_camera = self.h(pdf_light_to_cam_a) * (c_vcm + c_vc * self.h(pdf_cam_rev_w))     # [eq. 21, 22]
-        return 1.0 / (w_light + 1.0 + w_camera)                                             # [eq. 20]
+        return _finite(1.0 / (w_light + 1.0 + w_camera))                                    # [eq. 20]
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
         """Light vertex y_{s-1} (s>=2) connected to the camera (t=1). ``pdf_cam_a``: density of
@@ -171,7 +178,7 @@ class MIS:
         if not (self.s.hits or self.s.direct or self.s.connections):
             return 1.0 + 0.0 * l_vcm                        # light tracing alone (lt)
         w_light = self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
-        return 1.0 / (w_light + 1.0)                                             # [eq. 20] w_camera = 0
+        return _finite(1.0 / (w_light + 1.0))                                    # [eq. 20] w_camera = 0
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):
         """The emitter vertex y0 splatted to the camera (s=1, t=1); the other strategy for a
@@ -180,4 +187,4 @@ class MIS:
             return 0.0 * pdf_cam_a
         if not self.s.hits:
             return 1.0 + 0.0 * pdf_cam_a                    # light tracing alone (lt)
-        return 1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a))  # [eq. 20]
+        return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
