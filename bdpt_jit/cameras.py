@@ -8,8 +8,16 @@ The interface:
   density: ``first_edge_dist2``);
 - ``reachable``: whether a light vertex can be connected to the camera (t=1 strategies); a
   camera that no light path can reach (a delta direction, e.g. orthographic) sets it False
-  and the MIS weights leave those strategies out (strategies.StrategySet).
-Light-tracing splats take their value from ``sensor.sample_direction`` unchanged."""
+  and the MIS weights leave those strategies out (strategies.StrategySet);
+- ``sample_ray(time, u_wavelength, film_sample, aperture_sample)``: the primary ray and its
+  weight (Mitsuba's ``sample_ray``; ``sample_ray_differential`` for sensors that implement
+  only that one).
+Light-tracing splats take their value from ``sensor.sample_direction`` unchanged.
+
+Cameras that light tracing does not reach (``UnreachableCamera``): orthographic (a delta
+direction), radiancemeter (a delta ray), distant (a delta direction), irradiancemeter (a smooth
+importance, but Mitsuba's ``sample_direction`` for it returns the constant pi, not an importance
+a splat could use: its t=1 strategies are left out, a valid subset of the strategies)."""
 
 import math
 
@@ -36,7 +44,6 @@ class CameraModel:
         raise NotImplementedError
 
     def sample_ray(self, time, u_wavelength, film_sample, aperture_sample):
-        """The primary ray and its weight (Mitsuba's ``sample_ray``)."""
         return self.sensor.sample_ray(time, u_wavelength, film_sample, aperture_sample)
 
     def first_edge_dist2(self, ray, p):
@@ -87,7 +94,49 @@ class ThinLens(Perspective):
     plugin, mitsuba_class = 'thinlens', 'ThinLensCamera'
 
 
-CAMERAS = {cls.plugin: cls for cls in (Perspective, ThinLens)}
+class UnreachableCamera(CameraModel):
+    """A camera that no light vertex is connected to (``reachable = False``): the strategies
+    with t=1 do not exist for it, so the camera's density of its first direction enters no
+    weight (mis.MIS.camera_init starts the camera subpath with zeros whatever ``pdf_w`` says:
+    every remaining strategy samples the first edge the same way). ``pdf_w`` is a finite
+    placeholder and the first edge starts at the ray's origin."""
+    reachable = False
+
+    def pdf_w(self, d):
+        return dr.full(mi.Float, 1.0, dr.width(d))
+
+    def lens_point(self, ray):
+        return ray.o
+
+
+class Orthographic(UnreachableCamera):
+    """Parallel rays from the film rectangle on the near-clip plane: a delta direction."""
+    plugin, mitsuba_class = 'orthographic', 'OrthographicCamera'
+
+
+class RadianceMeter(UnreachableCamera):
+    """One ray (delta position and direction); a 1x1 film."""
+    plugin, mitsuba_class = 'radiancemeter', 'RadianceMeter'
+
+
+class Distant(UnreachableCamera):
+    """Parallel rays (a delta direction) aimed at the scene, a target point or a target shape;
+    a 1x1 film."""
+    plugin, mitsuba_class = 'distant', 'DistantSensorImpl'
+
+
+class IrradianceMeter(UnreachableCamera):
+    """Irradiance over a shape: cosine-weighted rays from points sampled uniformly on it
+    (weight pi). Mitsuba implements only ``sample_ray_differential`` for it."""
+    plugin, mitsuba_class = 'irradiancemeter', 'IrradianceMeter'
+
+    def sample_ray(self, time, u_wavelength, film_sample, aperture_sample):
+        ray, w = self.sensor.sample_ray_differential(time, u_wavelength, film_sample, aperture_sample)
+        return mi.Ray3f(ray), w
+
+
+CAMERAS = {cls.plugin: cls for cls in (Perspective, ThinLens, Orthographic, RadianceMeter, Distant,
+                                       IrradianceMeter)}
 
 
 def camera_for(sensor: mi.Sensor) -> CameraModel:

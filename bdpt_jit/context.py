@@ -16,14 +16,17 @@ from .film import FilmAccumulator, StrategyLayers
 from .mis import MIS
 from .passes import UNBOUNDED
 from .rays import RayOffsets
-from .scene_check import VertexNeeds, scene_has_delta_bsdf, scene_perturbs_normals
+from .scene_check import VertexNeeds, has_instances, scene_has_delta_bsdf, scene_perturbs_normals
 from .stats import RayStats
 from .store import record_type
 from .strategies import StrategySet
 
 
 def diffuse_table(scene):
-    """connect.DiffuseTable of the scene, or None if it covers no BSDF."""
+    """connect.DiffuseTable of the scene, or None if it covers no BSDF (or cannot see them all:
+    instanced shapes' BSDFs are not in scene.shapes())."""
+    if has_instances(scene):
+        return None
     table = DiffuseTable(scene)
     return table if table.any else None
 

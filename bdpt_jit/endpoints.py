@@ -6,18 +6,23 @@ direction ``sample_ray`` chooses), so they are computed here, per emitter kind, 
 
 | kind (flags) | position density | direction density |
 |---|---|---|
-| area (Surface) | its shape's ``pdf_position`` (uniform area) | cos / pi about the normal |
-| point, spot (DeltaPosition) | discrete (1) | uniform sphere; uniform cone within the spot's cutoff |
+| area (Surface) | Mitsuba's ``sample_position``: uniform by area, or by the radiance texture (bitmap, checkerboard: SpatiallyVarying) | cos / pi about the normal |
+| directionalarea (Surface, DeltaDirection) | its shape's ``sample_position`` (uniform by area, textured or not) | discrete (1): along the normal |
+| point, spot, projector (DeltaPosition) | discrete (1) | uniform sphere; uniform cone within the spot's cutoff, or around the projector's frustum |
 | directional (DeltaDirection, Infinite) | 1 / (pi R^2) on a disk facing the light | discrete (1) |
-| constant, envmap (Infinite) | 1 / (pi R^2) on a disk facing the direction | the emitter's ``pdf_direction`` |
+| constant, envmap, sunsky (Infinite) | 1 / (pi R^2) on a disk facing the direction | the emitter's ``pdf_direction`` |
 
 R is the radius of the scene's bounding sphere (slightly enlarged). For infinite emitters the
 'vertex' y0 is a direction, so its densities are per unit solid angle and the first edge has
 no distance factor; delta emitters cannot be hit (no s=0) nor sampled by BSDF sampling.
+A directionalarea emitter (a surface emitting only along its normal) is delta too: no camera
+ray can hit it and emitter sampling cannot reach it (Mitsuba's ``sample_direction`` for it returns
+nothing), so only the strategies with s >= 2 render its light (connections and splats).
 All selection probabilities are Mitsuba's own (``scene.sample_emitter``, proportional to each
 emitter's ``sampling_weight``)."""
 
 import math
+import re
 
 import drjit as dr
 import mitsuba as mi
@@ -31,33 +36,71 @@ from .rays import RayOffsets, offset_origin
 SMALL_SPHERE = 1e-2
 
 
+def _or(a, b):
+    """Mask union that keeps Python constants (a kind absent from the scene is False)."""
+    if a is False:
+        return b
+    if b is False:
+        return a
+    if a is True or b is True:
+        return True
+    return a | b
+
+
+def emitter_kinds(flags) -> set:
+    """The kinds (Kinds' names) of one emitter, from its flags (Python ints)."""
+    f = mi.EmitterFlags
+    surface, ddir = mi.has_flag(flags, f.Surface), mi.has_flag(flags, f.DeltaDirection)
+    kinds = set()
+    if surface:
+        kinds.add('dir_area' if ddir else 'area')
+    if mi.has_flag(flags, f.DeltaPosition):
+        kinds.add('delta_pos')
+    if ddir and not surface:
+        kinds.add('delta_dir')
+    if mi.has_flag(flags, f.Infinite):
+        kinds.add('infinite')
+    return kinds
+
+
 class Kinds:
     """Per-lane emitter kind masks. Kinds the scene does not have are the Python constant
-    False, so code for them is not traced."""
+    False, so code for them is not traced.
+
+    area       a surface emitting diffusely (Surface, not DeltaDirection)
+    dir_area   a surface emitting along its normal only (directionalarea)
+    delta_pos  point, spot, projector
+    delta_dir  a direction at infinity (directional)
+    infinite   at infinity (directional, constant, envmap, sunsky); env: infinite, not delta
+    delta      no camera ray can hit it (delta_pos, delta_dir, dir_area)"""
 
     def __init__(self, table, emitter):
         flags = emitter.flags() if table.mixed else None
-        def has(kind, flag):
+        F = mi.EmitterFlags
+
+        def has(kind, test):
             if not getattr(table, 'has_' + kind):
                 return False
             if not table.mixed:
                 return True
-            return mi.has_flag(flags, flag)
-        self.area = has('area', mi.EmitterFlags.Surface)
-        self.delta_pos = has('delta_pos', mi.EmitterFlags.DeltaPosition)
-        self.delta_dir = has('delta_dir', mi.EmitterFlags.DeltaDirection)
-        self.infinite = has('infinite', mi.EmitterFlags.Infinite)   # directional included
+            return test()
+        surface = lambda: mi.has_flag(flags, F.Surface)              # noqa: E731
+        ddir = lambda: mi.has_flag(flags, F.DeltaDirection)          # noqa: E731
+        self.area = has('area', lambda: surface() & ~ddir())
+        self.dir_area = has('dir_area', lambda: surface() & ddir())
+        self.delta_pos = has('delta_pos', lambda: mi.has_flag(flags, F.DeltaPosition))
+        self.delta_dir = has('delta_dir', lambda: ddir() & ~surface())
+        self.infinite = has('infinite', lambda: mi.has_flag(flags, F.Infinite))   # directional included
         self.env = self.infinite if self.delta_dir is False else (
             False if self.delta_dir is True else self.infinite & ~self.delta_dir)
-        if self.delta_pos is False or self.delta_dir is False:
-            self.delta = self.delta_dir if self.delta_pos is False else self.delta_pos
-        else:
-            self.delta = self.delta_pos | self.delta_dir
+        self.delta = _or(_or(self.delta_pos, self.delta_dir), self.dir_area)
+        self.surface = _or(self.area, self.dir_area)     # on a shape: rays leave with an offset
 
 
 class AreaKinds:
     """Kinds of an emitter that a camera ray hit: always an area emitter."""
     area, delta_pos, delta_dir, infinite, env, delta = True, False, False, False, False, False
+    dir_area, surface = False, True
 
 
 class EmitterTable:
@@ -72,20 +115,16 @@ class EmitterTable:
         self.count = len(emitters)
         kinds = set()
         for e in emitters:
-            f = e.flags()
-            if mi.has_flag(f, mi.EmitterFlags.Surface):
-                kinds.add('area')
-            if mi.has_flag(f, mi.EmitterFlags.DeltaPosition):
-                kinds.add('delta_pos')
-            if mi.has_flag(f, mi.EmitterFlags.DeltaDirection):
-                kinds.add('delta_dir')
-            if mi.has_flag(f, mi.EmitterFlags.Infinite):
-                kinds.add('infinite')
+            kinds |= emitter_kinds(e.flags())
         self.has_area = 'area' in kinds
+        self.has_dir_area = 'dir_area' in kinds
         self.has_delta_pos = 'delta_pos' in kinds
         self.has_delta_dir = 'delta_dir' in kinds
         self.has_infinite = 'infinite' in kinds
-        self.mixed = len(kinds) > 1 or ('infinite' in kinds and 'delta_dir' in kinds)
+        self.mixed = len(kinds) > 1
+        # area emitters whose radiance is a texture: Mitsuba samples their positions by the texture
+        self.has_textured_area = any('area' in emitter_kinds(e.flags()) and
+                                     mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying) for e in emitters)
         # the disk of infinite emitters: covers the scene's bounding sphere
         bs = scene.bbox().bounding_sphere()
         r = float(bs.radius) if math.isfinite(float(bs.radius)) and float(bs.radius) > 0 else 1.0
@@ -103,6 +142,8 @@ class EmitterTable:
                 m = np.array(e.world_transform().matrix).reshape(4, 4)
                 a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
                 axis[i] = [float(a[0]), float(a[1]), float(a[2])]
+            elif e.class_name() == 'Projector':
+                cos_cut[i], axis[i] = projector_cone(e)
         self.cone_cos = mi.Float(cos_cut)
         self.cone_axis = mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
         # sphere emitters (centre, radius; radius 0 for every other emitter): emitter sampling
@@ -110,11 +151,23 @@ class EmitterTable:
         sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
         for e, i in zip(emitters, ids):
             shape = e.get_shape()
-            if shape is not None and shape.class_name() == 'Sphere':
+            # (a textured sphere keeps Mitsuba's sampling: by the texture, no cone involved)
+            if shape is not None and shape.class_name() == 'Sphere' and emitter_kinds(e.flags()) == {'area'} \
+                    and not mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying):
                 m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
                 sph_r[i] = float(np.linalg.norm(m[:3, 0]))
                 sph_c[i] = [float(x) for x in m[:3, 3]]
         self.has_sphere = any(r > 0 for r in sph_r)
+        # 1 / area of each area emitter's shape: Mitsuba's uniform position density (read from this
+        # table, not through a shape call: a virtual call on shapes reaches instances, whose
+        # pdf_position raises, in scenes that have any)
+        inv_area = [0.0] * size
+        for e, i in zip(emitters, ids):
+            shape = e.get_shape()
+            if shape is not None:
+                area = float(dr.ravel(shape.surface_area()).numpy()[0])
+                inv_area[i] = 1.0 / area if area > 0 else 0.0
+        self.inv_area = mi.Float(inv_area)
         self.sph_r = mi.Float(sph_r)
         self.sph_c = mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
 
@@ -125,11 +178,32 @@ class EmitterTable:
         """Probability of choosing ``emitter`` (an EmitterPtr)."""
         return emitter.sampling_weight() / self.total_weight
 
-    @staticmethod
-    def pdf_pos_a(emitter, ps):
-        """Area emitters: density per unit area of the emission position (uniform over the
-        shape; spatially varying radiance is refused earlier)."""
-        return emitter.get_shape().pdf_position(ps)
+    def uniform_pdf_a(self, emitter):
+        """1 / the area of the emitter's shape (0 for emitters without one): the density of
+        Mitsuba's shape ``sample_position``, uniform by area for every shape."""
+        return dr.gather(mi.Float, self.inv_area, dr.reinterpret_array(mi.UInt32, emitter))
+
+    def pdf_pos_a(self, emitter, ps):
+        """Area emitters: density per unit area of the emission position ``ps`` (a
+        PositionSample3f or DirectionSample3f on the emitter, uv set) as Mitsuba's
+        ``sample_position`` samples it: uniform over the shape, or, for a textured radiance, the
+        texture's ``pdf_position(uv)`` over |dp/du x dp/dv|. Mitsuba exposes that density only
+        inside the area light's ``pdf_direction``: seen from the point one unit along the
+        normal it is exactly the density per unit area."""
+        uniform = self.uniform_pdf_a(emitter)
+        if not self.has_textured_area:
+            return uniform
+        flags = emitter.flags()
+        F = mi.EmitterFlags
+        textured = (mi.has_flag(flags, F.Surface) & mi.has_flag(flags, F.SpatiallyVarying)
+                    & ~mi.has_flag(flags, F.DeltaDirection))
+        n = dr.normalize(mi.Vector3f(ps.n))
+        it = dr.zeros(mi.Interaction3f, dr.width(n))
+        it.p, it.time = ps.p + n, ps.time
+        ds = dr.zeros(mi.DirectionSample3f, dr.width(n))
+        ds.p, ds.n, ds.uv, ds.time = ps.p, n, ps.uv, ps.time
+        ds.d, ds.dist, ds.emitter = -n, mi.Float(1.0), emitter
+        return dr.select(textured, emitter.pdf_direction(it, ds, textured), uniform)
 
     @staticmethod
     def pdf_dir_w(cos_e):
@@ -172,14 +246,22 @@ class EmitterTable:
         n_e = mi.Vector3f(ps.n)
         if k.area is not False:
             local = mi.warp.square_to_cosine_hemisphere(u_dir)
-            si_e.wi = local                                  # area emitters read si.wi
+            si_e.wi = local                                  # area emitters read si.wi (and si.uv)
             le = emitter.eval(si_e, active & k.area)
             d_area = si_e.to_world(local)
             value = sel(k.area, le * local.z, value)
-            p_pos = sel(k.area, self.pdf_pos_a(emitter, ps), p_pos)
+            p_pos = sel(k.area, ps.pdf, p_pos)               # by area, or by the radiance texture
             p_dir = sel(k.area, self.pdf_dir_w(local.z), p_dir)
             d = sel(k.area, d_area, d)
             cos_e = sel(k.area, dr.abs(dr.dot(ps.n, d_area)), cos_e)
+        if k.dir_area is not False:
+            # along the normal only (Mitsuba's sample_ray); the radiance at the point is what its
+            # sample_wavelengths returns (its eval is 0: no direction given can be the normal)
+            _, le_n = emitter.sample_wavelengths(si_e, mi.Float(0.5), active & k.dir_area)
+            value = sel(k.dir_area, le_n, value)
+            p_pos = sel(k.dir_area, ps.pdf, p_pos)
+            p_dir = sel(k.dir_area, mi.Float(1.0), p_dir)
+            d = sel(k.dir_area, mi.Vector3f(ps.n), d)
         if k.delta_pos is not False:
             cos_cut, axis = self.cone(emitter)
             d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u_dir, cos_cut))
@@ -212,9 +294,9 @@ class EmitterTable:
         ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
         e.active = ok
         # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
-        e.err = sel(k.area, self.offsets.error(ps.p, emitter.get_shape()), mi.Float(0.0)) \
-            if k.area is not False else mi.Float(0.0)
-        n_off = sel(k.area, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.area is not False else mi.Normal3f(0.0)
+        e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape()), mi.Float(0.0)) \
+            if k.surface is not False else mi.Float(0.0)
+        n_off = sel(k.surface, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.surface is not False else mi.Normal3f(0.0)
         e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, dr.zeros(mi.Color0f))
         return e
 
@@ -235,6 +317,8 @@ class EmitterTable:
             pdf_w = self.pdf_direct_w(si1, ds, active & neg(k.delta))
             out = sel(k.area, self.per_area(pdf_w, ds), out)
             out = sel(k.env, pdf_w, out)
+        if k.dir_area is not False:
+            out = sel(k.dir_area, 0.0, out)                  # emitter sampling never reaches it
         return out
 
     @staticmethod
@@ -328,9 +412,9 @@ class EmitterTable:
         """The error bound of an emitter sample's point for a shadow ray's far end (rays.py):
         area emitters' points lie on their shape; a point light or a direction has none."""
         k = self.kinds(ds.emitter)
-        if k.area is False:
+        if k.surface is False:
             return mi.Float(0.0)
-        return sel(k.area, self.offsets.error(ds.p, ds.emitter.get_shape()), mi.Float(0.0))
+        return sel(k.surface, self.offsets.error(ds.p, ds.emitter.get_shape()), mi.Float(0.0))
 
     @staticmethod
     def direct_terms(ds, k):
@@ -362,6 +446,8 @@ class EmitterTable:
         out = mi.Float(0.0)
         if k.area is not False:
             out = sel(k.area, self.pdf_pos_a(emitter, ds) * self.pdf_dir_w(dr.dot(ds.n, d_out)), out)
+        if k.dir_area is not False:
+            out = sel(k.dir_area, self.uniform_pdf_a(emitter), out)   # direction: discrete
         if k.delta_pos is not False:
             out = sel(k.delta_pos, self.cone_pdf_w(emitter, d_out), out)
         if k.delta_dir is not False:
@@ -375,6 +461,53 @@ class EmitterTable:
             it = dr.zeros(mi.Interaction3f, dr.width(d_out))
             out = sel(k.env, self.pdf_disk * emitter.pdf_direction(it, ds_env, k.env), out)
         return p_sel * out
+
+
+def projector_cone(emitter):
+    """(cos of the half angle, unit axis) of a circular cone around a ``projector``'s frustum:
+    light subpaths sample their directions uniformly in it (directions outside the frustum get
+    no intensity from Mitsuba's ``sample_direction``), and the densities use the same cone.
+    The frustum is Mitsuba's: x_fov (from the emitter's description: Mitsuba exposes no
+    accessor) and the texture's aspect, image plane at z = 1 of the emitter's to_world,
+    half-extents tan(x_fov / 2) and that over the aspect. The corners' directions bound it (a
+    circular cone containing the four edges contains their convex hull); the cone is widened
+    by 1e-3 of its angle, and checked against the directions of Mitsuba's own ``sample_ray``."""
+    from .scene_check import UnsupportedSceneError
+    match = re.search(r'x_fov = ([0-9.eE+-]+)', str(emitter))
+    if match is None:
+        raise UnsupportedSceneError("bdpt: cannot read the field of view of the projector emitter "
+                                    "(Mitsuba's description of it has no x_fov)")
+    tan_x = math.tan(math.radians(float(match.group(1))) / 2)
+    params = mi.traverse(emitter)
+    aspect = 1.0
+    if 'irradiance.data' in params.keys():
+        h, w = np.array(params['irradiance.data']).shape[:2]
+        aspect = w / h
+    tan_y = tan_x / aspect
+    m = np.array(emitter.world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
+    axis = m @ np.array([0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis)
+    cos_min = 1.0
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            c = m @ np.array([sx * tan_x, sy * tan_y, 1.0])
+            cos_min = min(cos_min, float(np.dot(axis, c / np.linalg.norm(c))))
+    angle = math.acos(max(-1.0, min(1.0, cos_min))) * (1 + 1e-3) + 1e-6
+    if angle >= math.pi / 2:
+        raise UnsupportedSceneError("bdpt: a projector emitter wider than a hemisphere is not supported")
+    cos_cut = math.cos(angle)
+    # Mitsuba's own emitted directions must lie in the cone (a check of the frustum read above)
+    n = 4096
+    rng = np.random.default_rng(0)
+    u = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    ray, w = emitter.sample_ray(0.0, 0.5, u, u, True)
+    d = np.array(ray.d, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=0, keepdims=True)          # (3, n)
+    lit = np.broadcast_to(np.array(dr.max(w), dtype=np.float64).reshape(-1) > 0, (n,))
+    if np.any((axis @ d)[lit] < cos_cut):
+        raise UnsupportedSceneError("bdpt: the projector emitter's frustum could not be bounded "
+                                    "(its emitted directions leave the cone computed from its field of view)")
+    return cos_cut, [float(axis[0]), float(axis[1]), float(axis[2])]
 
 
 class Emission:

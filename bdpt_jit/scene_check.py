@@ -3,13 +3,15 @@ that scope is refused with an error naming the plugin, never rendered wrongly.""
 
 import re
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .cameras import CAMERAS
 
 SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
-SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap')
+SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap', 'sunsky', 'projector',
+                      'directionalarea')
 SUPPORTED_SENSORS = tuple(CAMERAS)     # a camera model registered in cameras.py is supported
 
 
@@ -30,11 +32,35 @@ PLUGIN_NAMES = {
     'AreaLight': 'area', 'PointLight': 'point', 'SpotLight': 'spot', 'DirectionalEmitter': 'directional',
     'ConstantBackgroundEmitter': 'constant', 'EnvironmentMapEmitter': 'envmap', 'SunSkyEmitter': 'sunsky',
     'ProjectiveLight': 'projector', 'Projector': 'projector', 'DirectionalArea': 'directionalarea',
-    'SunskyEmitter': 'sunsky',
+    'SunskyEmitter': 'sunsky', 'TimedSunskyEmitter': 'timed_sunsky',
     'PerspectiveCamera': 'perspective', 'ThinLensCamera': 'thinlens', 'OrthographicCamera': 'orthographic',
     'TelecentricLensCamera': 'telecentric', 'RadianceMeter': 'radiancemeter', 'IrradianceMeter': 'irradiancemeter',
-    'DistantSensor': 'distant', 'Batch': 'batch',
+    'DistantSensor': 'distant', 'DistantSensorImpl': 'distant', 'Batch': 'batch', 'BatchSensor': 'batch',
+    'HomogeneousMedium': 'homogeneous', 'HeterogeneousMedium': 'heterogeneous',
+    'Rectangle': 'rectangle', 'Disk': 'disk', 'Sphere': 'sphere', 'Cylinder': 'cylinder', 'Cube': 'cube',
+    'OBJMesh': 'obj', 'PLYMesh': 'ply', 'SerializedMesh': 'serialized', 'BlenderMesh': 'blender',
+    'MergeShape': 'merge', 'Mesh': 'mesh',
 }
+
+# Why a plugin that Mitsuba 3.9 has is refused (docs/coverage.md lists them all)
+REFUSED_REASONS = {
+    'batch': "it renders several sensors side by side into one film, each needing its own camera model: "
+             "render each sensor on its own",
+    'timed_sunsky': "Mitsuba 3.9.1 cannot evaluate it inside a symbolic loop (its own path and ptracer "
+                    "fail on it too: 'jit_var_schedule(): not permitted'); sunsky with a fixed sun renders",
+}
+
+# Radiance textures that read more of the surface point than its uv and position: the start of a
+# light subpath is Mitsuba's PositionSample3f (position, normal, uv), which has no triangle index
+RADIANCE_TEXTURES_REFUSED = {'MeshAttribute': 'mesh_attribute'}
+
+# Shapes an area light with a textured radiance may have. Mitsuba samples such a light through
+# the texture and the shape's uv map (``eval_parameterization``), which must be one-to-one onto
+# the surface: true of rectangles, disks and spheres. A mesh's uv map often is not (a cube's
+# faces share their uvs: Mitsuba then samples one face, and its own path and ptracer are wrong
+# as well), and a transformed cylinder's ``eval_parameterization`` returns points up to ~1e-5 of
+# its size off the surface, where light subpaths start and intersect the cylinder again.
+TEXTURED_EMITTER_SHAPES = {'Rectangle': 'rectangle', 'Disk': 'disk', 'Sphere': 'sphere'}
 
 
 def _plugin_name(obj) -> str:
@@ -42,33 +68,78 @@ def _plugin_name(obj) -> str:
     return PLUGIN_NAMES.get(name, name)
 
 
+def _medium_name(medium) -> str:
+    """A medium as a message names it: its id (if any) and its plugin."""
+    plugin = _plugin_name(medium)
+    ident = str(medium.id()) if hasattr(medium, 'id') else ''
+    return f"'{ident}' ({plugin})" if ident else f"'{plugin}'"
+
+
+def _refuse_medium(where, medium):
+    raise UnsupportedSceneError(
+        f"bdpt: participating media are not supported: {where} has the medium {_medium_name(medium)} "
+        "(render it with Mitsuba's volpath)")
+
+
 def check_scene(scene: mi.Scene, sensor: mi.Sensor):
     check_variant()
     s_name = _plugin_name(sensor)
     if s_name not in SUPPORTED_SENSORS:
+        why = f": {REFUSED_REASONS[s_name]}" if s_name in REFUSED_REASONS else " yet"
         raise UnsupportedSceneError(
-            f"bdpt: sensor plugin '{s_name}' is not supported yet (supported: {', '.join(SUPPORTED_SENSORS)})")
+            f"bdpt: sensor plugin '{s_name}' is not supported{why} (supported: {', '.join(SUPPORTED_SENSORS)})")
     if sensor.get_medium() is not None:
-        raise UnsupportedSceneError("bdpt: participating media are not supported (the sensor has a medium)")
+        _refuse_medium('the sensor', sensor.get_medium())
     for em in scene.emitters():
         e_name = _plugin_name(em)
         if e_name not in SUPPORTED_EMITTERS:
+            why = f": {REFUSED_REASONS[e_name]}" if e_name in REFUSED_REASONS else " yet"
             raise UnsupportedSceneError(
-                f"bdpt: emitter plugin '{e_name}' is not supported yet (supported: {', '.join(SUPPORTED_EMITTERS)})")
-        keys = set(mi.traverse(em).keys())
-        if any(k.startswith('radiance.') and k != 'radiance.value' for k in keys):
-            raise UnsupportedSceneError(
-                "bdpt: area emitters with a textured (spatially varying) radiance are not supported yet")
+                f"bdpt: emitter plugin '{e_name}' is not supported{why} (supported: {', '.join(SUPPORTED_EMITTERS)})")
+        if mi.has_flag(em.flags(), mi.EmitterFlags.Surface):
+            text = str(em)
+            shape = em.get_shape()
+            if (mi.has_flag(em.flags(), mi.EmitterFlags.SpatiallyVarying) and e_name == 'area'
+                    and str(shape.class_name()) not in TEXTURED_EMITTER_SHAPES):
+                raise UnsupportedSceneError(
+                    f"bdpt: an area emitter with a textured radiance on the shape '{shape.id()}' "
+                    f"({_plugin_name(shape)}) is not supported: Mitsuba samples a textured emitter through "
+                    "the shape's uv map, which bdpt relies on only for "
+                    f"{', '.join(TEXTURED_EMITTER_SHAPES.values())} (a mesh's uv map need not be one-to-one, "
+                    "a cylinder's is not exact); give the emitter a uniform radiance or use one of those shapes")
+            if e_name == 'directionalarea':
+                try:       # its emitted radiance comes from the texture's sample_spectrum
+                    em.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, 1), mi.Float(0.5), True)
+                except Exception as e:
+                    raise UnsupportedSceneError(
+                        "bdpt: the directionalarea emitter's radiance texture cannot be sampled by Mitsuba "
+                        f"({e}); Mitsuba's ptracer fails on it too: use a bitmap or a uniform radiance") from None
+            for cls, name in RADIANCE_TEXTURES_REFUSED.items():
+                if cls + '[' in text:
+                    raise UnsupportedSceneError(
+                        f"bdpt: the {e_name} emitter's radiance from the texture '{name}' is not supported: a "
+                        "light subpath starts at Mitsuba's position sample (position, normal, uv), which "
+                        "carries no triangle to read a mesh attribute at (bitmap and checkerboard "
+                        "radiance are supported)")
         if em.get_medium() is not None:
-            raise UnsupportedSceneError("bdpt: participating media are not supported (an emitter has a medium)")
+            _refuse_medium(f"the emitter '{e_name}'", em.get_medium())
     for shape in scene.shapes():
-        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
-            raise UnsupportedSceneError(
-                f"bdpt: participating media are not supported (shape '{shape.id()}' has a medium)")
+        for side, medium in (('interior', shape.interior_medium()), ('exterior', shape.exterior_medium())):
+            if medium is not None:
+                _refuse_medium(f"the shape '{shape.id()}' ({side})", medium)
+
+
+def has_instances(scene: mi.Scene) -> bool:
+    """True if the scene instances shape groups: their shapes and BSDFs are not in
+    ``scene.shapes()``, so every analysis below answers conservatively (delta handling, exact
+    adjoint, every stored field), and the diffuse table is not used (context.diffuse_table)."""
+    return any(str(s.class_name()) == 'Instance' for s in scene.shapes())
 
 
 def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
     """True if any BSDF of the scene has a delta lobe (then the delta handling is traced)."""
+    if has_instances(scene):
+        return True
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta):
@@ -79,6 +150,8 @@ def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
 def scene_perturbs_normals(scene: mi.Scene) -> bool:
     """True if a BSDF of the scene perturbs the shading frame from the surface tangents
     (normal or bump map): light vertices then also store the tangents."""
+    if has_instances(scene):
+        return True
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is not None and any(name in str(bsdf) for name in ('NormalMap', 'BumpMap')):
@@ -139,6 +212,9 @@ class VertexNeeds:
       does not give its depth)."""
 
     def __init__(self, scene: mi.Scene):
+        if has_instances(scene):       # shapes and BSDFs this analysis cannot see: every field
+            self.geometric_normal = self.uv = self.tangent = self.surface_tangents = self.depth = True
+            return
         bsdfs = [s.bsdf() for s in scene.shapes() if s.bsdf() is not None]
         self.geometric_normal = not all(_flat_faces(s) for s in scene.shapes())
         uv_free = all(_uv_free(b) for b in bsdfs)

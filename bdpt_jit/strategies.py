@@ -13,7 +13,8 @@ They fall into families, each offered by some techniques:
 | splats | t=1: a light vertex connected to the camera, splatted to the light image | yes | | yes |
 
 The splats need a camera that a light vertex can be connected to (cameras.CameraModel
-``reachable``). Which of them a render traces also depends on the scene (its emitter kinds)
+``reachable``); without one (orthographic, radiancemeter, distant, irradiancemeter) bdpt
+combines hits, direct and connections, and ``lt`` is refused (it would have no strategy). Which of them a render traces also depends on the scene (its emitter kinds)
 and on ``max_depth``: a strategy whose shortest path is longer than max_depth is not traced.
 """
 
@@ -28,7 +29,11 @@ class StrategySet:
                  has_env=False, camera_reachable=True, hide_emitters=False):
         if technique not in TECHNIQUES:
             raise ValueError(f"technique must be one of {', '.join(TECHNIQUES)}, got {technique!r}")
+        if technique == 'lt' and not camera_reachable:
+            raise ValueError("technique 'lt' needs a camera that light paths can reach; this one "
+                             "(a delta direction or position) has no light-tracing strategy: use bdpt or pt")
         self.technique = technique
+        self.camera_reachable = camera_reachable
         # ---- families of the estimator (mis.py)
         self.hits = technique in ('bdpt', 'pt')
         self.direct = technique in ('bdpt', 'pt')
@@ -47,6 +52,12 @@ class StrategySet:
     def for_scene(cls, technique, max_depth_edges, emitters, camera, hide_emitters):
         """``emitters``: endpoints.EmitterTable; ``camera``: cameras.CameraModel."""
         scene = emitters.scene
+        if technique == 'lt' and not camera.reachable:
+            from .scene_check import UnsupportedSceneError
+            raise UnsupportedSceneError(
+                f"bdpt: technique 'lt' cannot render through the sensor '{camera.plugin}': light tracing "
+                "never reaches it (a delta direction or position: no light path can be connected to it); "
+                "use technique 'bdpt' or 'pt'")
         return cls(technique, max_depth_edges, has_area=emitters.has_area, has_emitters=emitters.count > 0,
                    has_env=scene.environment() is not None, camera_reachable=camera.reachable,
                    hide_emitters=hide_emitters)

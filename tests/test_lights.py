@@ -167,16 +167,6 @@ def test_thinlens_cornell_box(max_depth, technique, mis):
     assert ok, f'{technique}/{mis} max_depth={max_depth}: {msg}'
 
 
-def test_orthographic_is_refused_clearly():
-    d = cornell(8)
-    d['sensor'] = {'type': 'orthographic', 'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
-                   'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}}
-    from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
-    scene = mi.load_dict(d)
-    with pytest.raises(UnsupportedSceneError, match="sensor plugin 'orthographic' is not supported"):
-        check_scene(scene, scene.sensors()[0])
-
-
 def test_hide_emitters_with_an_environment():
     """hide_emitters hides the directly seen environment as Mitsuba's `path` does (and the
     directly seen area light), while everything the environment lights stays."""

@@ -14,7 +14,10 @@ Paths start on each emitter kind (endpoints.py): area (a surface point), delta p
 discrete direction, its first edge from a disk, per unit projected area) and environment
 (constant/envmap: a direction per unit solid angle, first edge from a disk), and end on each
 camera kind: a pinhole (z0 fixed) or a thin lens, whose lens point z0 every strategy samples
-with the same area density (camera rays and splats alike), which must cancel."""
+with the same area density (camera rays and splats alike), which must cancel, or a camera that
+light tracing cannot reach (``delta``: orthographic, radiancemeter, ...;
+``StrategySet(..., camera_reachable=False)``): no strategy with t=1 exists, bdpt combines hits,
+direct and connections, its weights must still sum to one, and ``lt`` is refused."""
 
 import drjit as dr
 import mitsuba as mi
@@ -22,6 +25,7 @@ import numpy as np
 import pytest
 
 from bdpt_jit.mis import MIS
+from bdpt_jit.strategies import StrategySet
 
 M = 512   # random paths per length
 
@@ -65,6 +69,8 @@ def allowed(technique, k, s, P):
     t = k + 1 - s
     if t < 1:
         return np.zeros(M, bool)
+    if P.get('camera') == 'delta' and t == 1:
+        return np.zeros(M, bool)           # no light path reaches the camera
     if P['emitter'] != 'area' and s == 1 and t == 1:
         return np.zeros(M, bool)           # only a surface emitter can be seen by the camera
     if P['emitter'] in ('delta_pos', 'delta_dir') and s == 0:
@@ -127,7 +133,8 @@ def brute_force(kind, technique, P, p_lens=None):
 
 def recursive(kind, technique, P):
     k = P['k']
-    mis = MIS(kind, technique)
+    reachable = P.get('camera') != 'delta'
+    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable))
     F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
     B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
@@ -196,11 +203,13 @@ def recursive(kind, technique, P):
                                    F(pE[:, s - 1]), F(pL[:, s]))
         w = np.array(w if isinstance(w, mi.Float) else mi.Float(w), dtype=np.float64)
         w = np.broadcast_to(w, (M,)) if w.size == 1 else w
+        if not reachable and t == 1:
+            assert np.all(w == 0), f'a light-tracing weight (s={s}, t=1) for an unreachable camera'
         out.append(np.where(allowed(technique, k, s, P), w, 0.0))
     return np.array(out)
 
 
-@pytest.mark.parametrize('camera', ['pinhole', 'thinlens'])
+@pytest.mark.parametrize('camera', ['pinhole', 'thinlens', 'delta'])
 @pytest.mark.parametrize('emitter', KINDS)
 @pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
@@ -208,6 +217,11 @@ def recursive(kind, technique, P):
 def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
     rng = np.random.default_rng(1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter)
+    P['camera'] = camera
+    if camera == 'delta' and technique == 'lt':
+        with pytest.raises(ValueError, match='lt'):
+            StrategySet('lt', camera_reachable=False)      # no strategy left
+        return
     w_rec = recursive(kind, technique, P)
     p_lens = 10.0 ** rng.uniform(-1, 3, size=M) if camera == 'thinlens' else None
     w_ref = brute_force(kind, technique, P, p_lens)

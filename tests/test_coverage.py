@@ -1,0 +1,396 @@
+"""Plugins of Mitsuba 3.9 that bdpt renders beyond the first scope (issue 14), each against
+Mitsuba's own integrators, and the plugins it refuses, each with a message that says why.
+
+- cameras no light path reaches (cameras.UnreachableCamera): orthographic, radiancemeter,
+  distant, irradiancemeter; bdpt combines hits, direct and connections there, lt is refused;
+- area lights with a textured radiance (bitmap, checkerboard), whose positions Mitsuba samples
+  by the texture (endpoints.EmitterTable.pdf_pos_a);
+- sunsky (an infinite emitter) through a window; projector (delta position, textured frustum);
+  directionalarea (a surface emitting along its normal: only light subpaths reach its light, so
+  the reference is ptracer, and `path`, like technique pt, renders it black);
+- refusals: the aov integrator wrapping bdpt, participating media (the message names the
+  medium), textured emitters on meshes and cylinders, timed_sunsky, batch;
+- docs/coverage.md lists every plugin Mitsuba ships.
+
+Agreement as in test_lights.py: K batches, Welch per pixel and per 4x4 block (helpers.agreement);
+references cached under tests/.refcache. Uniform weights are heavy-tailed wherever BSDF sampling
+alone must find a small bright light (design.md), so they run at more samples, and not with the
+sun (0.27 degrees wide) in view of BSDF sampling: the sky alone there."""
+
+import os
+import re
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
+from helpers import REPO, agreement, cached_reference, render_batches
+from stability_cases import cornell, diffuse, film, rgb
+
+T = mi.ScalarTransform4f
+RES = 16
+BATCHES = 16
+REF_SEED = 50_000           # first seed of this file's reference batches
+
+
+def reference(name, build, integrator, spp, batches=BATCHES, seed0=REF_SEED):
+    """Reference batches of Mitsuba's ``integrator`` (a dict) on the scene ``build()``, cached."""
+    key = ('coverage', name, tuple(sorted(integrator.items())), spp, batches, seed0)
+    return cached_reference(key, lambda: render_batches(mi.load_dict(build()), integrator, spp, batches, seed0=seed0))
+
+
+def check(name, build, ref_integrator, ref_spp, integrator, spp):
+    scene = mi.load_dict(build())
+    ref = reference(name, build, ref_integrator, ref_spp)
+    mine = render_batches(scene, integrator, spp, BATCHES)
+    ok, msg = agreement(mine, ref)
+    assert ok, f'{name} {integrator}: {msg}'
+
+
+def cause_chain(e):
+    """The messages of an exception and of everything it was raised from."""
+    out = []
+    while e is not None:
+        out.append(str(e))
+        e = e.__cause__ or e.__context__
+    return '\n'.join(out)
+
+
+# ---------------------------------------------------------------------------- scenes
+def ortho_box():
+    """The Cornell box through an orthographic camera tilted up, so that it sees the light."""
+    d = cornell(RES)
+    for k in ('fov', 'fov_axis', 'focus_distance'):
+        d['sensor'].pop(k, None)
+    d['sensor'].update(type='orthographic', to_world=T().look_at(origin=[0, -0.6, 3.9], target=[0, 0.2, 0],
+                                                                 up=[0, 1, 0]).scale([1.05, 1.05, 1]))
+    return d
+
+
+def meter_box(kind):
+    """The Cornell box measured by a 1x1 sensor: a radiance meter looking at the back wall, a
+    distant sensor aimed at a patch of the box, an irradiance meter on a patch of the floor."""
+    d = cornell(1)
+    if kind == 'radiancemeter':
+        d['sensor'] = {'type': 'radiancemeter', 'origin': [0.0, -0.2, 3.0], 'direction': [0.13, 0.7, -3.0],
+                       'film': film(1)}
+    elif kind == 'distant':
+        d['sensor'] = {'type': 'distant', 'direction': [0.0, -0.3, -1.0], 'film': film(1),
+                       'target': {'type': 'rectangle', 'to_world': T().translate([0.3, -0.4, 0.0]).scale(0.3)}}
+    else:
+        d.pop('sensor')
+        d['meter'] = {'type': 'rectangle', 'to_world': T().translate([-0.3, -0.99, 0.4]).rotate([1, 0, 0], -90).scale(0.1),
+                      'sensor': {'type': 'irradiancemeter', 'film': film(1)}}
+    return d
+
+
+def texture_image():
+    """8x8 radiance far from uniform (Mitsuba samples it by its luminance): ramps, a dark
+    quarter and one texel 40 times brighter than the rest."""
+    img = np.zeros((8, 8, 3), np.float32)
+    yy, xx = np.mgrid[0:8, 0:8]
+    img[..., 0] = 0.5 + 3.0 * xx / 8
+    img[..., 1] = 0.5 + 3.0 * yy / 8
+    img[..., 2] = 1.0
+    img[:4, :4] = 0.0
+    img[6, 1] = [40.0, 30.0, 20.0]
+    return img
+
+
+def radiance_texture(kind):
+    if kind == 'bitmap':
+        return {'type': 'bitmap', 'bitmap': mi.Bitmap(texture_image()), 'raw': True}
+    return {'type': 'checkerboard', 'color0': {'type': 'uniform', 'value': 12.0},
+            'color1': {'type': 'uniform', 'value': 0.5}, 'to_uv': mi.ScalarTransform3f().scale([3, 3])}
+
+
+def textured_box(texture='bitmap', shape='rectangle'):
+    """The Cornell box lit only by a textured area light: a panel in front of the back wall
+    (seen by the camera), or a sphere or disk in the box."""
+    d = cornell(RES, light=False)
+    emitter = {'type': 'area', 'radiance': radiance_texture(texture)}
+    if shape == 'rectangle':
+        d['lamp'] = {'type': 'rectangle', 'to_world': T().translate([0.0, 0.1, -0.98]).scale(0.55)}
+    elif shape == 'sphere':
+        d['lamp'] = {'type': 'sphere', 'center': [0.2, 0.3, -0.2], 'radius': 0.25}
+    else:
+        d['lamp'] = {'type': shape, 'to_world': T().translate([0.2, 0.3, -0.2]).rotate([1, 0, 0], 30).scale(0.2)}
+    d['lamp'].update(bsdf=diffuse(0.0), emitter=emitter)
+    return d
+
+
+def window_room(sun_scale=0.2):
+    """A closed room [-1, 1]^3 (y up) with a square window in the ceiling, a box on the floor,
+    lit by Mitsuba's sunsky (z up in its frame, rotated to y up): the sun falls through the
+    window onto the box and the floor; everything else is lit by the sky."""
+    w = 0.35
+    d = {'type': 'scene',
+         'sensor': {'type': 'perspective', 'fov': 80, 'film': film(RES),
+                    'to_world': T().look_at(origin=[0, 0.6, 0.95], target=[0, -1, -0.3], up=[0, 1, 0])},
+         'floor': {'type': 'rectangle', 'to_world': T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
+                   'bsdf': diffuse([0.7, 0.6, 0.5])},
+         'back': {'type': 'rectangle', 'to_world': T().translate([0, 0, -1]), 'bsdf': diffuse(0.6)},
+         'front': {'type': 'rectangle', 'to_world': T().translate([0, 0, 1]).rotate([0, 1, 0], 180), 'bsdf': diffuse(0.6)},
+         'left': {'type': 'rectangle', 'to_world': T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+                  'bsdf': diffuse([0.6, 0.2, 0.2])},
+         'right': {'type': 'rectangle', 'to_world': T().translate([1, 0, 0]).rotate([0, 1, 0], -90),
+                   'bsdf': diffuse([0.2, 0.6, 0.2])},
+         'block': {'type': 'cube', 'to_world': T().translate([0.3, -0.75, -0.2]).scale(0.25), 'bsdf': diffuse(0.7)},
+         'sky': {'type': 'sunsky', 'to_world': T().rotate([1, 0, 0], -90), 'sun_direction': [-0.15, 1.0, 0.25],
+                 'sky_scale': 10.0, 'sun_scale': float(sun_scale)}}
+    for name, (cx, cz, sx, sz) in {'c1': (0, (1 + w) / 2, 1, (1 - w) / 2), 'c2': (0, -(1 + w) / 2, 1, (1 - w) / 2),
+                                   'c3': ((1 + w) / 2, 0, (1 - w) / 2, w), 'c4': (-(1 + w) / 2, 0, (1 - w) / 2, w)}.items():
+        d[name] = {'type': 'rectangle', 'to_world': T().translate([cx, 1, cz]).rotate([1, 0, 0], 90).scale([sx, sz, 1]),
+                   'bsdf': diffuse(0.6)}
+    return d
+
+
+def projector_box(textured=True):
+    """The Cornell box lit by a projector aimed at the back corner; textured: a 10x6 image with
+    a bright block and a dark band (not square: the frustum's aspect is the texture's)."""
+    d = cornell(RES, light=False)
+    e = {'type': 'projector', 'fov': 40, 'scale': 2.0,
+         'to_world': T().look_at(origin=[0.6, 0.8, 0.6], target=[-0.2, -0.6, -0.5], up=[0, 1, 0])}
+    if textured:
+        img = np.zeros((6, 10, 3), np.float32)
+        img[...] = [1.0, 0.7, 0.3]
+        img[1:4, 2:5] = [8.0, 2.0, 1.0]
+        img[:, 8:] = 0.0
+        e['irradiance'] = {'type': 'bitmap', 'bitmap': mi.Bitmap(img), 'raw': True}
+    d['projector'] = e
+    return d
+
+
+def directionalarea_box():
+    """The Cornell box lit only by a 0.6 x 0.6 panel under the ceiling emitting straight down."""
+    d = cornell(RES, light=False)
+    d['panel'] = {'type': 'rectangle', 'to_world': T().translate([0.1, 0.95, -0.1]).rotate([1, 0, 0], 90).scale(0.3),
+                  'bsdf': diffuse(0.5), 'emitter': {'type': 'directionalarea', 'radiance': rgb([6.0, 5.0, 4.0])}}
+    return d
+
+
+# ---------------------------------------------------------------------------- cameras
+@pytest.mark.parametrize('max_depth,technique,mis,spp', [
+    (1, 'bdpt', 'power', 64),            # the light seen directly: s=0 alone (no s=1,t=1 to compete)
+    (3, 'bdpt', 'power', 256),
+    (3, 'pt', 'power', 1024),
+    pytest.param(3, 'bdpt', 'uniform', 2048, marks=pytest.mark.slow),
+])
+def test_orthographic_cornell_box(max_depth, technique, mis, spp):
+    """A delta-direction camera: no light-tracing strategy, the weights of the others sum to one."""
+    check('ortho-box', ortho_box, {'type': 'path', 'max_depth': max_depth}, 4096,
+          {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique, 'mis': mis}, spp)
+
+
+def test_orthographic_renders_no_light_strategies():
+    """bdpt through an orthographic camera traces no splat, and lt is refused with the reason."""
+    scene = mi.load_dict(ortho_box())
+    integrator = mi.load_dict({'type': 'bdpt', 'max_depth': 3})
+    mi.render(scene, integrator=integrator, spp=1)
+    traced = integrator.last_render_info['strategies']
+    assert not any('t=1' in s for s in traced) and any('s>=2' in s for s in traced), traced
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'lt'}), spp=1)
+    assert "technique 'lt' cannot render through the sensor 'orthographic'" in cause_chain(info.value)
+
+
+@pytest.mark.parametrize('kind', ['radiancemeter', 'distant', 'irradiancemeter'])
+@pytest.mark.parametrize('technique,mis', [('bdpt', 'power'), ('bdpt', 'uniform'), ('pt', 'power')])
+def test_meters_agree_with_path(kind, technique, mis):
+    """1x1 sensors: one delta ray, parallel rays at a target, irradiance over a shape."""
+    check(f'meter-{kind}', lambda: meter_box(kind), {'type': 'path', 'max_depth': 4}, 4096,
+          {'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'mis': mis}, 1024)
+
+
+# ---------------------------------------------------------------------------- textured area lights
+@pytest.mark.parametrize('texture,shape,technique,mis,spp', [
+    ('bitmap', 'rectangle', 'bdpt', 'power', 256),
+    ('bitmap', 'rectangle', 'lt', 'power', 1024),      # lt: heavy-tailed in dim pixels at 256
+    ('bitmap', 'rectangle', 'pt', 'power', 1024),
+    pytest.param('bitmap', 'rectangle', 'bdpt', 'uniform', 2048, marks=pytest.mark.slow),
+    ('checker', 'rectangle', 'bdpt', 'power', 256),
+    ('checker', 'rectangle', 'lt', 'power', 1024),
+    ('checker', 'sphere', 'bdpt', 'power', 256),
+    ('bitmap', 'disk', 'bdpt', 'power', 256),
+])
+def test_textured_area_light(texture, shape, technique, mis, spp):
+    """Emission at the sampled point's uv; positions at Mitsuba's texture-driven density (the
+    bitmap's: a uniform-area density in the weights is +2.8% here, in the throughput +190%)."""
+    check(f'textured-{texture}-{shape}', lambda: textured_box(texture, shape), {'type': 'path', 'max_depth': 3}, 4096,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique, 'mis': mis}, spp)
+
+
+@pytest.mark.parametrize('shape', ['cube', 'cylinder'])
+def test_textured_emitter_refused_on_meshes_and_cylinders(shape):
+    scene = mi.load_dict(textured_box('checker', shape))
+    with pytest.raises(UnsupportedSceneError, match=f"textured radiance on the shape .*\\({shape}\\)"):
+        check_scene(scene, scene.sensors()[0])
+
+
+# ---------------------------------------------------------------------------- sunsky
+@pytest.mark.parametrize('sun,technique,mis,spp', [
+    (True, 'bdpt', 'power', 256),
+    (True, 'lt', 'power', 1024),
+    (True, 'pt', 'power', 256),
+    (False, 'bdpt', 'uniform', 1024),
+])
+def test_sunsky_through_a_window(sun, technique, mis, spp):
+    """sunsky is an infinite emitter with sample_direction and pdf_direction: the environment
+    code path (a disk facing the direction, Mitsuba's direction density) renders it."""
+    scale = 0.2 if sun else 0.0
+    check(f'window-room-{scale}', lambda: window_room(scale), {'type': 'path', 'max_depth': 3}, 4096,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique, 'mis': mis}, spp)
+
+
+def test_timed_sunsky_refused_with_the_reason():
+    d = window_room()
+    d['sky'] = {'type': 'timed_sunsky', 'to_world': T().rotate([1, 0, 0], -90)}
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match="'timed_sunsky' is not supported: Mitsuba 3.9.1 cannot"):
+        check_scene(scene, scene.sensors()[0])
+
+
+# ---------------------------------------------------------------------------- projector
+@pytest.mark.parametrize('textured,technique,mis,spp', [
+    (True, 'bdpt', 'power', 256),
+    (True, 'lt', 'power', 256),
+    (True, 'pt', 'power', 1024),
+    (True, 'bdpt', 'uniform', 256),
+    (False, 'bdpt', 'power', 256),
+])
+def test_projector(textured, technique, mis, spp):
+    """Light subpaths leave the projector uniformly in a cone around its frustum (a 5% error in
+    that density: lt -4.6%, caught here)."""
+    check(f'projector-{textured}', lambda: projector_box(textured), {'type': 'path', 'max_depth': 3}, 4096,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique, 'mis': mis}, spp)
+
+
+def test_projector_cone_holds_its_frustum():
+    """The cone of endpoints.projector_cone holds every direction Mitsuba's projector emits, for
+    a wide, non-square, rotated and scaled one."""
+    from bdpt_jit.endpoints import projector_cone
+    img = np.ones((3, 12, 3), np.float32)
+    e = mi.load_dict({'type': 'projector', 'fov': 100, 'irradiance': {'type': 'bitmap', 'bitmap': mi.Bitmap(img)},
+                      'to_world': T().rotate([0.3, 1, 0.2], 70).scale([1.5, 0.7, 1.0])})
+    cos_cut, axis = projector_cone(e)
+    n = 1 << 14
+    rng = np.random.default_rng(3)
+    u = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    ray, w = e.sample_ray(0.0, 0.5, u, u, True)
+    d = np.array(ray.d, dtype=np.float64)
+    cos = (np.array(axis) @ d) / np.linalg.norm(d, axis=0)
+    assert cos.min() >= cos_cut
+    assert cos.min() < cos_cut + 0.02          # and not much wider than the frustum's corners
+
+
+# ---------------------------------------------------------------------------- directionalarea
+@pytest.mark.parametrize('technique,mis', [('bdpt', 'power'), ('lt', 'power'), ('bdpt', 'uniform')])
+def test_directionalarea_agrees_with_ptracer(technique, mis):
+    """Only the strategies with s >= 2 see this light (its s=0 and s=1 densities are 0: taking
+    emitter sampling's density for its first hit as nonzero is -34% with uniform weights)."""
+    check('directionalarea', directionalarea_box, {'type': 'ptracer', 'max_depth': 4}, 1024,
+          {'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'mis': mis}, 256)
+
+
+def test_directionalarea_is_black_to_path_tracing():
+    """No camera-side strategy can reach it: technique pt renders it black, as Mitsuba's path."""
+    scene = mi.load_dict(directionalarea_box())
+    pt = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'pt', 'max_depth': 4}), spp=16))
+    path = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'path', 'max_depth': 4}), spp=16))
+    assert np.all(pt == 0) and np.all(path == 0)
+
+
+def test_directionalarea_texture_without_spectrum_sampling_refused():
+    d = directionalarea_box()
+    d['panel']['emitter']['radiance'] = radiance_texture('checker')
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match="directionalarea emitter's radiance texture cannot be sampled"):
+        check_scene(scene, scene.sensors()[0])
+
+
+# ---------------------------------------------------------------------------- shapes
+def instanced_box():
+    """The Cornell box with two instances of one shape group (a sphere and a small cube)."""
+    d = cornell(RES)
+    d['group'] = {'type': 'shapegroup',
+                  'ball': {'type': 'sphere', 'radius': 0.25, 'bsdf': diffuse([0.7, 0.7, 0.3])},
+                  'cube': {'type': 'cube', 'to_world': T().translate([0.0, -0.35, 0.0]).scale(0.1), 'bsdf': diffuse(0.5)}}
+    for name, x in (('left', -0.45), ('right', 0.4)):
+        d[name] = {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'group'},
+                   'to_world': T().translate([x, -0.5, 0.1 * x])}
+    return d
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'lt'])
+def test_instances_agree_with_path(technique):
+    """Instanced shapes (they failed before: a virtual call on shapes reached the instance's
+    pdf_position, which raises)."""
+    check('instances', instanced_box, {'type': 'path', 'max_depth': 3}, 4096,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique}, 256)
+
+
+# ---------------------------------------------------------------------------- refusals
+def test_aov_wrapper_refused_with_a_clear_message():
+    """Mitsuba's aov integrator calls the nested integrator's per-sample sample(), which bdpt
+    cannot serve (its light image splats across pixels): one message says so and how to get the
+    AOVs; the aov integrator alone renders them."""
+    scene = mi.load_dict(cornell(8))
+    wrapped = mi.load_dict({'type': 'aov', 'aovs': 'dd:depth,nn:sh_normal', 'image': {'type': 'bdpt'}})
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=wrapped, spp=4)
+    text = cause_chain(info.value)
+    assert 'bdpt cannot run inside another integrator' in text
+    assert 'Render the AOV channels with the aov integrator alone' in text
+    aovs = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'aov', 'aovs': 'dd:depth,nn:sh_normal'}), spp=4))
+    image = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt'}), spp=4))
+    assert aovs.shape[:2] == image.shape[:2] and aovs.shape[2] == 4 and aovs[..., 0].max() > 3
+
+
+@pytest.mark.parametrize('where', ['shape', 'sensor'])
+def test_media_refused_naming_the_medium(where):
+    d = cornell(8)
+    d['fog'] = {'type': 'homogeneous', 'id': 'fog', 'sigma_t': 0.5}
+    if where == 'shape':
+        d['tank'] = {'type': 'cube', 'to_world': T().scale(0.3), 'bsdf': {'type': 'null'},
+                     'interior': {'type': 'ref', 'id': 'fog'}}
+    else:
+        d['sensor']['medium'] = {'type': 'ref', 'id': 'fog'}
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match=r"participating media are not supported: .* the medium 'fog' \(homogeneous\)"):
+        check_scene(scene, scene.sensors()[0])
+
+
+def test_batch_sensor_refused_with_the_reason():
+    d = cornell(8)
+    s = d.pop('sensor')
+    d['sensor'] = {'type': 'batch', 'a': s, 'b': dict(s), 'film': film(16, 8)}
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match="'batch' is not supported: it renders several sensors"):
+        check_scene(scene, scene.sensors()[0])
+
+
+# ---------------------------------------------------------------------------- the coverage table
+def test_coverage_doc_lists_every_plugin():
+    """docs/coverage.md names every plugin Mitsuba 3.9 ships (its plugin libraries), and marks
+    the emitters and sensors scene_check supports as supported, the others as refused."""
+    from bdpt_jit.scene_check import SUPPORTED_EMITTERS, SUPPORTED_SENSORS
+    text = open(os.path.join(REPO, 'docs', 'coverage.md')).read()
+    rows = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.split('|')]
+        if len(cells) < 4 or not cells[1].startswith('`'):
+            continue
+        status = re.match(r'(supported|refused|not applicable|not tested)', cells[2])
+        assert status, f'no status in: {line}'
+        for name in re.findall(r'`([a-z0-9_]+)`', cells[1]):
+            rows[name] = status.group(1)
+    plugins = os.path.join(os.path.dirname(mi.__file__), 'plugins')
+    shipped = {f[:-3] for f in os.listdir(plugins) if f.endswith('.so')}
+    missing = sorted(shipped - set(rows))
+    assert not missing, f'plugins missing from docs/coverage.md: {missing}'
+    for name in SUPPORTED_EMITTERS + SUPPORTED_SENSORS:
+        assert rows.get(name) == 'supported', name
+    for name in ('timed_sunsky', 'batch', 'homogeneous', 'heterogeneous'):
+        assert rows.get(name) == 'refused', name
