@@ -176,7 +176,7 @@ def directionalarea_box():
     (1, 'bdpt', 'power', 64),            # the light seen directly: s=0 alone (no s=1,t=1 to compete)
     (3, 'bdpt', 'power', 256),
     (3, 'pt', 'power', 1024),
-    pytest.param(3, 'bdpt', 'uniform', 2048, marks=pytest.mark.slow),
+    (3, 'bdpt', 'uniform', 2048),
 ])
 def test_orthographic_cornell_box(max_depth, technique, mis, spp):
     """A delta-direction camera: no light-tracing strategy, the weights of the others sum to one."""
@@ -209,7 +209,7 @@ def test_meters_agree_with_path(kind, technique, mis):
     ('bitmap', 'rectangle', 'bdpt', 'power', 256),
     ('bitmap', 'rectangle', 'lt', 'power', 1024),      # lt: heavy-tailed in dim pixels at 256
     ('bitmap', 'rectangle', 'pt', 'power', 1024),
-    pytest.param('bitmap', 'rectangle', 'bdpt', 'uniform', 2048, marks=pytest.mark.slow),
+    ('bitmap', 'rectangle', 'bdpt', 'uniform', 2048),
     ('checker', 'rectangle', 'bdpt', 'power', 256),
     ('checker', 'rectangle', 'lt', 'power', 1024),
     ('checker', 'sphere', 'bdpt', 'power', 256),
