@@ -67,8 +67,9 @@ def check_parameters(params, scene=None, has_delta=False):
             why = 'sensor parameters and the placement of point, spot and analytic shapes'
         elif leaf in ('eta', 'int_ior', 'ext_ior') and cls in _DELTA_IOR:
             why = "the index of refraction of a smooth dielectric (it turns a delta lobe's direction)"
-        elif (leaf in _GEOMETRY_LEAVES or key.endswith('to_world')) and has_delta:
-            why = 'shape geometry in a scene with delta (specular) BSDFs (specular chains constrain their vertices)'
+        elif (leaf in _GEOMETRY_LEAVES or key.endswith('to_world')) and (has_delta or _delta_emitters(scene)):
+            why = ('shape geometry in a scene with delta (specular) BSDFs or a directionalarea emitter '
+                   '(delta directions constrain the vertices after them)')
         if why is not None:
             raise NotImplementedError(
                 f"bdpt: gradients with respect to '{key}' are not supported: {why}. bdpt differentiates "
@@ -83,6 +84,15 @@ def geometry_keys(params):
         return []
     return [k for k in _grad_enabled_keys(params)
             if k.split('.')[-1] in _GEOMETRY_LEAVES or k.endswith('to_world')]
+
+
+def _delta_emitters(scene):
+    """A surface emitter with a delta direction (directionalarea) in the scene."""
+    if scene is None:
+        return False
+    f = mi.EmitterFlags
+    return any(mi.has_flag(e.flags(), f.Surface) and mi.has_flag(e.flags(), f.DeltaDirection)
+               for e in scene.emitters())
 
 
 def intersect(c, ray, active, primary=False):
@@ -197,6 +207,11 @@ def emission_ratio(c, e, si1, u_dir, time, active):
         si_e.wi = si_e.to_local(w)
         le = emitter.eval(si_e, active & k.area)
         value = sel(k.area, le * dr.abs(dr.dot(e.y0_n, w)) * cos1 * safe_div(1.0, dist2), value)
+    if getattr(k, 'dir_area', False) is not False:
+        # a surface emitting along its normal only (directionalarea): a delta direction, so only
+        # the emitted value is differentiated (geometry is refused for it: check_parameters)
+        _, le_n = emitter.sample_wavelengths(e.si_e, mi.Float(0.5), active & k.dir_area)   # as endpoints
+        value = sel(k.dir_area, le_n * dr.abs(dr.dot(si1.n, e.d)), value)
     if k.delta_pos is not False:
         it = dr.zeros(mi.Interaction3f)
         it.p, it.time = si1.p, time

@@ -300,3 +300,29 @@ def test_reverse_mode_memory_does_not_grow_with_spp():
         assert out.returncode == 0, out.stderr[-2000:]
         peaks[spp] = int(out.stdout.strip().splitlines()[-1])
     assert peaks[256] <= 1.15 * peaks[16], f'peak RSS (KiB): {peaks}'
+
+
+@pytest.mark.parametrize('builder', ['directionalarea_box', 'projector_box', 'textured_box'])
+def test_new_emitter_kinds_are_linear_in_emission(builder):
+    """The emitters of tests/test_coverage.py (directionalarea, projector, textured area light):
+    for each of its values, the forward derivative along that value is the image (same seed;
+    one value at a time: a projector's image is scale x irradiance, of degree 2 in both)."""
+    import test_coverage as tc
+    names = mi.traverse(mi.load_dict(getattr(tc, builder)())).keys()
+    keys = [k for k in names if k.endswith(('radiance.value', 'radiance.data', 'irradiance.data', 'intensity.value',
+                                            'projector.scale', 'radiance.color0.value'))]
+    assert keys, list(names)
+    for key in keys:
+        scene = mi.load_dict(getattr(tc, builder)())
+        params = mi.traverse(scene)
+        if not isinstance(params[key], (mi.Float, mi.Color3f, mi.TensorXf)):
+            continue
+        v = attach(params, key)
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4})
+        img = mi.render(scene, params, integrator=integ, spp=4, seed=1, seed_grad=2)
+        dr.set_grad(v, dr.detach(v))
+        dr.forward_to(img)
+        g = np.array(dr.grad(img))
+        ref = np.array(mi.render(scene, integrator=integ, spp=4, seed=2))
+        err = np.abs(g - ref).max() / max(ref.mean(), 1e-12)
+        assert err < 1e-3, f'{builder} {key}: d image/d s differs from the image by {err:.3g} of its mean'
