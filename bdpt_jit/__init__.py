@@ -36,11 +36,31 @@ if isinstance(_mi, Exception):
     raise _mi
 mi = _mi
 
+# the kernels' modules, in import order: they hold the active variant's types (contexts,
+# record layouts, the plugin's base class), and are imported again when the variant changes
+_KERNEL_MODULES = ('jitmath', 'rays', 'strategies', 'cameras', 'direct', 'endpoints', 'connect', 'store',
+                   'film', 'stats', 'roulette', 'mis', 'passes', 'scene_check', 'gradients', 'context',
+                   'light_path', 'camera_path', 'integrator')
+_loaded_variant = None
+
+
+def _reload_kernels():
+    import importlib
+    for name in _KERNEL_MODULES:
+        module = sys.modules.get(f'{__name__}.{name}')
+        if module is not None:
+            importlib.reload(module)
+
+
 def register():
     """Register ``bdpt`` for the active Mitsuba variant (``llvm_ad_rgb`` if none is active).
     Raises, with what Dr.Jit reported, if no variant can be activated."""
+    global _loaded_variant
     if mi.variant() is None:
         set_variant_quietly('llvm_ad_rgb')
+    if _loaded_variant is not None and mi.variant() != _loaded_variant:
+        _reload_kernels()
+    _loaded_variant = mi.variant()
     from .integrator import BDPTIntegrator
     mi.register_integrator('bdpt', lambda props: BDPTIntegrator(props))
 

@@ -24,17 +24,18 @@ class CameraTracer:
     def __init__(self, ctx):
         self.ctx = ctx
 
-    def primary(self, sampler, n, spp_pass, pixel_start):
+    def primary(self, sampler, n, spp_pass, pixel_start, u_wavelength=None):
         """Camera rays for N samples: spp_pass consecutive samples per pixel of the crop,
-        starting at crop pixel ``pixel_start``."""
+        starting at crop pixel ``pixel_start`` (``u_wavelength``: see trace)."""
         c = self.ctx
         idx = dr.arange(mi.UInt32, n)
         pixel = idx // dr.opaque(mi.UInt32, spp_pass) + dr.opaque(mi.UInt32, pixel_start)
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size
-        ray, ray_w = c.camera.sample_ray(c.time, sampler.next_1d(), adjusted, sampler.next_2d())
-        return pos + c.camera.crop_offset, ray, mi.Color3f(ray_w)
+        u_wl = sampler.next_1d() if u_wavelength is None else u_wavelength
+        ray, ray_w = c.camera.sample_ray(c.time, u_wl, adjusted, sampler.next_2d())
+        return pos + c.camera.crop_offset, ray, mi.Spectrum(ray_w)
 
     # ------------------------------------------------------------------ strategies
     def strategy_s0(self, si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos=None):
@@ -65,7 +66,7 @@ class CameraTracer:
             escaped = escaped & (depth > 1)
         si_env = dr.zeros(mi.SurfaceInteraction3f)
         si_env.wi = -ray.d
-        si_env.time = ray.time
+        si_env.time, si_env.wavelengths = ray.time, ray.wavelengths
         le = env.eval(si_env, escaped)
         ds, pdf_emit_w = c.emitters.pdf_emit_w_env(env, prev, ray.d, escaped)
         pdf_direct_w = c.emitters.pdf_direct_w(prev, ds, escaped & (depth > 1))
@@ -83,7 +84,8 @@ class CameraTracer:
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
         blocked = c.scene.ray_test(spawn_to_emitter(si.p, si.n, c.offsets.error(si.p, si.shape), ds,
-                                                    c.emitters.error_at(ds), si.time, c.offsets.far_rel), active)
+                                                    c.emitters.error_at(ds), si.time, c.offsets.far_rel,
+                                                    si.wavelengths), active)
         if c.stats is not None:
             c.stats.shadow(active, blocked)
         active &= ~blocked
@@ -107,7 +109,7 @@ class CameraTracer:
         v = record.load(st_v, slot, active)
         v_depth = v.depth_at(level)
         ok = active & (v_depth + depth + 1 <= c.max_depth_edges)
-        y = v.interaction(c.time)
+        y = v.interaction(c.time, si.wavelengths)     # the sample's wavelengths (spectral)
         to_y = y.p - si.p
         dist2 = dr.squared_norm(to_y)
         d = to_y * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0))
@@ -119,7 +121,7 @@ class CameraTracer:
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
         err = c.offsets.error(si.p, si.shape) if err is None else err
         blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, y.p, y.n, v.err, si.time,
-                                            c.offsets.far_rel), ok)
+                                            c.offsets.far_rel, si.wavelengths), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
@@ -139,7 +141,7 @@ class CameraTracer:
         n_light, record, st_v, slot_of = store.count, store.record, store.v, store.slot   # read before the loop
         # stored depths grow with j (depth_j >= j + 1): beyond j_end max_depth forbids all
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(depth + 1, c.max_depth_edges))
-        L = mi.Color3f(0.0)
+        L = mi.Spectrum(0.0)
         j = mi.UInt32(0)
         err = c.offsets.error(si.p, si.shape)         # once for all the connections of si
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
@@ -183,24 +185,26 @@ class CameraTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                        bs.pdf, pdf_rev_w, is_delta)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time)
+        ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time, si.wavelengths)
         return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
 
     # ------------------------------------------------------------------ walk
     @dr.syntax
-    def trace(self, sampler, n, spp_pass, pixel_start, film, store):
+    def trace(self, sampler, n, spp_pass, pixel_start, film, store, u_wavelength=None):
+        """``u_wavelength``: the samples' wavelength samples in spectral variants (the light
+        subpaths were given the wavelengths they choose), else None."""
         c = self.ctx
         mis = c.mis
-        scene = c.scene
         max_edges = c.max_depth_edges
-        film_pos, ray, beta = self.primary(sampler, n, spp_pass, pixel_start)
+        film_pos, ray, beta = self.primary(sampler, n, spp_pass, pixel_start, u_wavelength)
+        wavelengths = ray.wavelengths
         beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
 
         si = gradients.intersect(c, ray, True, primary=True)     # in solid angle: no edge factor
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
-        L = mi.Color3f(0.0)
+        L = mi.Spectrum(0.0)
         if c.strategies.trace_env:
             L += self.strategy_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
                                    mi.Float(0), mi.Float(0), ~si.is_valid() & (max_edges >= 1), film_pos)
@@ -245,4 +249,4 @@ class CameraTracer:
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
 
-        film.put_camera(film_pos, L, alpha, mi.Bool(True))
+        film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths)

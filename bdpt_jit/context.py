@@ -14,6 +14,7 @@ from .connect import DiffuseTable
 from .endpoints import EmitterTable
 from .film import FilmAccumulator, StrategyLayers
 from .mis import MIS
+from .params import ParameterError
 from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .scene_check import VertexNeeds, has_instances, scene_has_delta_bsdf, scene_perturbs_normals
@@ -25,8 +26,8 @@ from .strategies import StrategySet
 def diffuse_table(scene):
     """connect.DiffuseTable of the scene, or None if it covers no BSDF (or cannot see them all:
     instanced shapes' BSDFs are not in scene.shapes())."""
-    if has_instances(scene):
-        return None
+    if has_instances(scene) or not mi.is_rgb:
+        return None                 # (its reflectances are RGB: spectral and mono use the BSDFs)
     table = DiffuseTable(scene)
     return table if table.any else None
 
@@ -92,6 +93,9 @@ class Context:
         # opaque: literals would be baked into the kernels and recompile them for every spp
         self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))
+        if settings['strategy_images'] and not mi.is_rgb:
+            raise ParameterError(f"bdpt: parameter 'strategy_images' needs an RGB variant (the layers are "
+                                 f"RGB images), not '{mi.variant()}'")
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
         self.stats = RayStats() if settings['statistics'] else None

@@ -29,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
-from .rays import RayOffsets, offset_origin
+from .rays import RayOffsets, no_wavelengths, offset_origin
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
 
@@ -219,9 +219,11 @@ class EmitterTable(DirectSampling):
         return dr.select(inside, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), 0.0)
 
     # ------------------------------------------------------------------ light subpath start
-    def sample_emission(self, time, u_sel, u_pos, u_dir, active):
+    def sample_emission(self, time, u_sel, u_pos, u_dir, active, wavelengths=None):
         """Start a light subpath: choose an emitter, a position and a direction. Returns an
-        Emission with the ray, the throughput after emission and the densities."""
+        Emission with the ray, the throughput after emission and the densities. ``wavelengths``:
+        the sample's (spectral variants: the camera subpath's, passes.sample_wavelengths)."""
+        wl = wavelengths if wavelengths is not None else no_wavelengths()
         idx, _, _ = self.scene.sample_emitter(u_sel, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), idx, active)
         k = self.kinds(emitter)
@@ -233,9 +235,9 @@ class EmitterTable(DirectSampling):
         # ---- position (area, point, spot)
         ps, _ = emitter.sample_position(time, u_pos, active & finite)
         e.ps = ps
-        si_e = mi.SurfaceInteraction3f(ps, dr.zeros(mi.Color0f))
+        si_e = mi.SurfaceInteraction3f(ps, wl)
         e.si_e = si_e
-        value = mi.Color3f(0.0)
+        value = mi.Spectrum(0.0)
         p_pos = mi.Float(1.0)
         p_dir = mi.Float(0.0)
         d = mi.Vector3f(0, 0, 1)
@@ -265,7 +267,7 @@ class EmitterTable(DirectSampling):
             d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u_dir, cos_cut))
             it = dr.zeros(mi.Interaction3f)
             it.p = ps.p + d_cone                             # at distance 1: weight = intensity
-            it.time = time
+            it.time, it.wavelengths = time, wl
             _, intensity = emitter.sample_direction(it, u_dir, active & k.delta_pos)
             value = sel(k.delta_pos, intensity, value)
             p_dir = sel(k.delta_pos, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), p_dir)
@@ -274,7 +276,7 @@ class EmitterTable(DirectSampling):
         if k.infinite is not False:
             it = dr.zeros(mi.Interaction3f)
             it.p = self.center
-            it.time = time
+            it.time, it.wavelengths = time, wl
             ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & k.infinite)
             to_light = ds_inf.d                              # from the scene towards the emitter
             disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
@@ -288,14 +290,14 @@ class EmitterTable(DirectSampling):
         e.d, e.origin, e.n_e, e.cos_e = d, origin, n_e, cos_e
         e.pdf_emit_w = p_sel * p_pos * p_dir
         e.pdf_light_a = p_sel * p_pos                        # y0's density (s=1, t=1)
-        e.beta = mi.Color3f(value * safe_div(1.0, e.pdf_emit_w))
+        e.beta = mi.Spectrum(value * safe_div(1.0, e.pdf_emit_w))
         ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
         e.active = ok
         # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
         e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape()), mi.Float(0.0)) \
             if k.surface is not False else mi.Float(0.0)
         n_off = sel(k.surface, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.surface is not False else mi.Normal3f(0.0)
-        e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, dr.zeros(mi.Color0f))
+        e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, wl)
         return e
 
     def pdf_direct_first_hit(self, e, si1, active):

@@ -26,19 +26,14 @@ class FilmAccumulator:
         sensor's importance is normalised over the crop: each splat carries 1/spp."""
         return 1.0 / spp
 
-    def put_camera(self, pos, value: mi.Color3f, alpha, active):
-        vals = [value.x, value.y, value.z]
-        if self.has_alpha:
-            vals.append(alpha)
-        vals.append(dr.select(active, 1.0, 0.0))
-        self.cam.put(pos, vals, active)
+    def put_camera(self, pos, value, alpha, active, wavelengths):
+        """A camera sample (weight 1 in the filter's normalisation). ``value``: a spectrum at
+        ``wavelengths`` (spectral variants: converted by the block, as Mitsuba's path does)."""
+        self.cam.put(pos, wavelengths, value, alpha, 1.0, active)
 
-    def put_splat(self, uv_in_crop, value: mi.Color3f, active):
-        vals = [value.x, value.y, value.z]
-        if self.has_alpha:
-            vals.append(dr.zeros(mi.Float, dr.width(value.x)))
-        vals.append(dr.zeros(mi.Float, dr.width(value.x)))
-        self.lt.put(uv_in_crop + self.crop_offset, vals, active)
+    def put_splat(self, uv_in_crop, value, active, wavelengths):
+        """A light-image splat: no alpha, no weight (normalised with the film, as ptracer)."""
+        self.lt.put(uv_in_crop + self.crop_offset, wavelengths, value, 0.0, 0.0, active)
 
     def develop(self, light_scale=1.0) -> mi.TensorXf:
         """Sum of the normalised camera image and the light image, handed to the film so that

@@ -169,14 +169,14 @@ def sample_direct(c, si, u, active):
     return ds, dr.detach(w) * ratio(le * geo)
 
 
-def sample_emission(c, time, u_sel, u_pos, u_dir, active):
+def sample_emission(c, time, u_sel, u_pos, u_dir, active, wavelengths=None):
     """EmitterTable.sample_emission. In a differentiable pass everything is sampled without
     derivatives except the emitter point of area emitters, a material point of its shape;
     the emitted value's derivative comes with ``emission_ratio`` at the first hit."""
     if not c.ad:
-        return c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active)
+        return c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
     with dr.suspend_grad():
-        e = c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active)
+        e = c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
     if e.kinds.area is not False:
         ps, _ = e.emitter.sample_position(time, u_pos, e.active & e.kinds.area)
         p = sel(e.kinds.area, ps.p, e.origin)
@@ -199,7 +199,7 @@ def emission_ratio(c, e, si1, u_dir, time, active):
     w = to * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0))
     w = sel(k.infinite, e.d, w)
     cos1 = dr.abs(dr.dot(si1.n, w))
-    value = mi.Color3f(0.0)
+    value = mi.Spectrum(0.0)
     if k.area is not False:
         si_e = mi.SurfaceInteraction3f(e.si_e)
         si_e.p, si_e.n = e.y0_p, e.y0_n
@@ -214,18 +214,19 @@ def emission_ratio(c, e, si1, u_dir, time, active):
         value = sel(k.dir_area, le_n * dr.abs(dr.dot(si1.n, e.d)), value)
     if k.delta_pos is not False:
         it = dr.zeros(mi.Interaction3f)
-        it.p, it.time = si1.p, time
+        it.p, it.time, it.wavelengths = si1.p, time, si1.wavelengths
         _, w_pt = emitter.sample_direction(it, u_dir, active & k.delta_pos)    # I(w) / d^2
         value = sel(k.delta_pos, w_pt * cos1, value)
     if k.infinite is not False:
         if k.delta_dir is not False:
             it = dr.zeros(mi.Interaction3f)
-            it.p, it.time = si1.p, time
+            it.p, it.time, it.wavelengths = si1.p, time, si1.wavelengths
             _, w_dir = emitter.sample_direction(it, u_dir, active & k.delta_dir)
             value = sel(k.delta_dir, w_dir * cos1, value)
         if k.env is not False:
             # (eval, not eval_direction: Mitsuba's envmap reads the direction from ds.p - it.p there)
             si_env = dr.zeros(mi.SurfaceInteraction3f)
             si_env.wi, si_env.time = e.d, time                # e.d leaves the environment
+            si_env.wavelengths = si1.wavelengths
             value = sel(k.env, emitter.eval(si_env, active & k.env) * cos1, value)
     return dr.select(active, ratio(value), 1.0)

@@ -113,13 +113,19 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         sampler = sensor.sampler().clone()
         sampler.set_sample_count(spp_pass)
         sampler.seed(pass_seed(seed, i), n)
+        u_wl, spectral = None, None
+        if mi.is_spectral:
+            # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
+            # emitters would draw their own in sample_ray): the sensor's, as its sample_ray does
+            u_wl = sampler.next_1d()
+            spectral = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
         store = None
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
             store = LightStore(n=n, capacity=cap, record=ctx.record) if cap > 0 else None
-            LightTracer(ctx).trace(sampler, n, acc, store)
+            LightTracer(ctx).trace(sampler, n, acc, store, spectral)
         if ctx.strategies.camera_pass:
-            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store)
+            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store, u_wl)
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
         if ctx.layers is not None:
             dr.eval(ctx.layers.buf)

@@ -18,19 +18,27 @@ class LightTracer:
 
     def __init__(self, ctx):
         self.ctx = ctx
+        self.wl_weight = 1.0        # spectral variants: the wavelengths' sampling weight (start)
 
     # ------------------------------------------------------------------ emission
-    def start(self, sampler, n, film):
+    def start(self, sampler, n, film, spectral=None):
+        """``spectral``: (wavelengths, their sampling weight) of each sample in spectral variants
+        (the camera subpath of the same sample carries the same ones), else None."""
         c = self.ctx
         active = dr.full(mi.Bool, True, n)
         u_sel, u_pos, u_dir = sampler.next_1d(), sampler.next_2d(), sampler.next_2d()
-        e = gradients.sample_emission(c, c.time, u_sel, u_pos, u_dir, active)
+        wl = spectral[0] if spectral is not None else None
+        e = gradients.sample_emission(c, c.time, u_sel, u_pos, u_dir, active, wl)
+        # the wavelengths' sampling weight enters the splats (t=1) only: the camera subpath of
+        # the same sample carries it already, and a connection multiplies both throughputs
+        self.wl_weight = spectral[1] if spectral is not None else 1.0
         active = e.active
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
         u_cam = sampler.next_2d()
         if c.strategies.trace_splat_y0 and e.kinds.area is not False:      # only surfaces can be seen directly
-            self.splat_emitter_vertex(u_cam, e, film, active & e.kinds.area)
+            self.splat_emitter_vertex(u_cam, e, film, active & e.kinds.area,
+                                      spectral[1] if spectral is not None else 1.0)
 
         d_vc = c.mis.light_init(e.pdf_emit_w, e.cos_e, e.kinds.delta)
         active &= c.max_depth_edges >= 2
@@ -51,7 +59,9 @@ class LightTracer:
         depth = dr.full(mi.UInt32, 1, n)
         return active, si, beta, d_vcm, d_vc, depth
 
-    def splat_emitter_vertex(self, u, e, film, active):
+    def splat_emitter_vertex(self, u, e, film, active, wl_weight=1.0):
+        """s=1, t=1: the emitter vertex y0 connected to the camera (``wl_weight``: the
+        wavelengths' sampling weight in spectral variants)."""
         c = self.ctx
         si_e, ps, emitter = e.si_e, e.ps, e.emitter
         ds, sensor_w = c.sensor.sample_direction(si_e, u, active)
@@ -61,23 +71,26 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        blocked = c.scene.ray_test(spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time, c.offsets.far_rel), ok)
+        blocked = c.scene.ray_test(spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time, c.offsets.far_rel,
+                                            si_e.wavelengths), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
         pdf_light_a = e.pdf_light_a
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), cos_g, dr.square(ds.dist))  # We |cos| / d^2
         w = c.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
-        value = le * dr.abs(cos_g) * safe_div(sensor_w.x, pdf_light_a) * c.splat_scale
-        film.put_splat(ds.uv, value * w, ok)
+        value = le * dr.abs(cos_g) * (sensor_w * safe_div(1.0, pdf_light_a)) * c.splat_scale
+        if not isinstance(wl_weight, float):
+            value = value * wl_weight
+        film.put_splat(ds.uv, value * w, ok, si_e.wavelengths)
         if c.layers is not None:
             c.layers.add(1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
     # ------------------------------------------------------------------ walk
-    def trace(self, sampler, n, film, store):
+    def trace(self, sampler, n, film, store, spectral=None):
         """Trace N light subpaths; splat t=1 strategies; fill ``store`` (or None)."""
         c = self.ctx
-        active, si, beta, d_vcm, d_vc, depth = self.start(sampler, n, film)
+        active, si, beta, d_vcm, d_vc, depth = self.start(sampler, n, film, spectral)
         beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
         count = dr.zeros(mi.UInt32, n)
@@ -98,14 +111,17 @@ class LightTracer:
         ok = active & (ds.pdf > 0)
         f, pdf_fwd_w, pdf_rev_w, valid = eval_light_vertex(si, bsdf, ds.d, ok, c.exact_adjoint, c.diffuse)
         ok &= valid & (dr.max(f) > 0)
-        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, ds.p, mi.Normal3f(0.0), 0.0, si.time, c.offsets.far_rel), ok)
+        blocked = c.scene.ray_test(spawn_to(si.p, si.n, err, ds.p, mi.Normal3f(0.0), 0.0, si.time, c.offsets.far_rel,
+                                            si.wavelengths), ok)
         if c.stats is not None:
             c.stats.shadow(ok, blocked)
         ok &= ~blocked
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
         w = c.mis.weight_t1(d_vcm, d_vc, pdf_cam_a, pdf_rev_w)
         value = beta * f * sensor_w * c.splat_scale
-        film.put_splat(ds.uv, value * w, ok)
+        if not isinstance(self.wl_weight, float):
+            value = value * self.wl_weight
+        film.put_splat(ds.uv, value * w, ok, si.wavelengths)
         if c.layers is not None:
             c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
@@ -154,7 +170,7 @@ class LightTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        ray = spawn(si.p, si.n, err, wo_world, si.time)
+        ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)
         return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
 
     @dr.syntax

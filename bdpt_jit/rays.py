@@ -75,12 +75,20 @@ def offset_origin(p, n, err, d):
     return dr.fma(mi.Vector3f(n), dr.mulsign(dist, dr.dot(n, d)), p)
 
 
-def spawn(p, n, err, d, time):
-    """An extension ray from the surface point ``p`` in the unit direction ``d``."""
-    return mi.Ray3f(offset_origin(p, n, err, d), d, dr.largest(mi.Float), time, dr.zeros(mi.Color0f))
+def no_wavelengths():
+    """The wavelengths of a ray in RGB and monochrome variants (none); spectral variants pass
+    a sample's own."""
+    return dr.zeros(mi.Color0f) if not mi.is_spectral else dr.zeros(mi.Spectrum)
 
 
-def spawn_to(p, n, err, q, n_q, err_q, time, far_rel=ERR_REL):
+def spawn(p, n, err, d, time, wavelengths=None):
+    """An extension ray from the surface point ``p`` in the unit direction ``d``, carrying the
+    path's ``wavelengths`` (spectral variants)."""
+    wl = wavelengths if wavelengths is not None else no_wavelengths()
+    return mi.Ray3f(offset_origin(p, n, err, d), d, dr.largest(mi.Float), time, wl)
+
+
+def spawn_to(p, n, err, q, n_q, err_q, time, far_rel=ERR_REL, wavelengths=None):
     """A shadow ray from the surface point ``p`` to the point ``q``: both ends moved off their
     surfaces towards each other (``n_q`` zero and ``err_q`` 0 for a point on no surface: a
     pinhole, a point light), and the far end shortened by ``far_rel`` of the length
@@ -92,15 +100,16 @@ def spawn_to(p, n, err, q, n_q, err_q, time, far_rel=ERR_REL):
     d = q_off - o
     dist = dr.norm(d)
     d = d * dr.rcp(dr.select(dist > 0, dist, 1.0))
-    return mi.Ray3f(o, d, dist * (1.0 - far_rel), time, dr.zeros(mi.Color0f))
+    wl = wavelengths if wavelengths is not None else no_wavelengths()
+    return mi.Ray3f(o, d, dist * (1.0 - far_rel), time, wl)
 
 
-def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL):
+def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL, wavelengths=None):
     """Shadow ray to an emitter sample ``ds`` (DirectionSample3f): ``spawn_to`` its point, or an
     unbounded ray in its direction where the sample is at infinity (environment, directional:
     ``ds.dist`` infinite)."""
-    to = spawn_to(p, n, err, ds.p, ds.n, err_q, time, far_rel)
+    to = spawn_to(p, n, err, ds.p, ds.n, err_q, time, far_rel, wavelengths)
     inf = ~dr.isfinite(ds.dist)
     o_inf = offset_origin(p, n, err, ds.d)
     return mi.Ray3f(dr.select(inf, o_inf, to.o), dr.select(inf, ds.d, to.d),
-                    dr.select(inf, dr.largest(mi.Float), to.maxt), time, dr.zeros(mi.Color0f))
+                    dr.select(inf, dr.largest(mi.Float), to.maxt), time, to.wavelengths)

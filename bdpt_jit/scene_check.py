@@ -9,7 +9,8 @@ import numpy as np
 
 from .cameras import CAMERAS
 
-SUPPORTED_VARIANTS = ('llvm_ad_rgb', 'cuda_ad_rgb', 'llvm_rgb', 'cuda_rgb')
+SUPPORTED_VARIANTS = tuple(f'{backend}{ad}_{colour}' for colour in ('rgb', 'mono', 'spectral')
+                           for backend in ('llvm', 'cuda') for ad in ('_ad', ''))
 SUPPORTED_EMITTERS = ('area', 'point', 'spot', 'directional', 'constant', 'envmap', 'sunsky', 'projector',
                       'directionalarea')
 SUPPORTED_SENSORS = tuple(CAMERAS)     # a camera model registered in cameras.py is supported
@@ -21,6 +22,11 @@ class UnsupportedSceneError(ValueError):
 
 def check_variant():
     v = mi.variant()
+    if v is not None and 'polarized' in v:
+        raise UnsupportedSceneError(
+            f"bdpt: Mitsuba variant '{v}' is not supported: polarized transport needs Mueller matrices "
+            "and reference frames carried along both subpaths and matched at every connection; use the "
+            f"same variant without polarization ({v.replace('_polarized', '')})")
     if v not in SUPPORTED_VARIANTS:
         raise UnsupportedSceneError(
             f"bdpt: Mitsuba variant '{v}' is not supported; use one of "

@@ -26,15 +26,16 @@ FIELDS = {
     'prim_index': mi.UInt32,  # triangle                 (mesh attributes)
     'dp_du': mi.Vector3f,     # surface tangents         (normal and bump maps)
     'dp_dv': mi.Vector3f,
-    'beta': mi.Color3f,       # Le / p up to y_j, importance transport
+    'beta': mi.Spectrum,      # Le / p up to y_j, importance transport (3, 1 or 4 words)
     'd_vcm': mi.Float,        # MIS quantities (mis.py)
     'd_vc': mi.Float,
     'depth': mi.UInt32,       # j: edges from y0         (absent: level + 1, every vertex stored)
 }
 
 
-_COMPONENTS = {mi.Point3f: 3, mi.Normal3f: 3, mi.Vector3f: 3, mi.Color3f: 3, mi.Point2f: 2,
-               mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1}
+_COMPONENTS = {mi.Point3f: 3, mi.Normal3f: 3, mi.Vector3f: 3, mi.Point2f: 2,
+               mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1,
+               mi.Spectrum: dr.size_v(mi.Spectrum)}    # RGB 3, monochrome 1, spectral 4
 
 
 class VertexRecord:
@@ -125,12 +126,15 @@ class VertexRecord:
         """Edges from y0 to this vertex, stored at ``level`` (0-based)."""
         return self.depth if 'depth' in self.DRJIT_STRUCT else level + 1
 
-    def interaction(self, time):
-        """The SurfaceInteraction3f that the vertex's BSDF is evaluated at."""
+    def interaction(self, time, wavelengths=None):
+        """The SurfaceInteraction3f that the vertex's BSDF is evaluated at (``wavelengths``: the
+        sample's, in spectral variants: those of the camera vertex it is connected to)."""
         f = self.DRJIT_STRUCT
         si = dr.zeros(mi.SurfaceInteraction3f, dr.width(self.p))
         si.t = mi.Float(1.0)
         si.time = time
+        if wavelengths is not None:
+            si.wavelengths = wavelengths
         si.p = self.p
         si.n = self.n if 'n' in f else self.n_s
         if 's' in f:
