@@ -363,3 +363,17 @@ def test_docs_list_the_parameter_options():
         'docs/cli.md is out of date: paste python -c "from bdpt_jit.cli import params_markdown; print(params_markdown())"'
     for opt in ('--spp', '--time', '--pass-spp', '--integrator', '-D', '--variant', '--seed', '-o', '-q', '--debug'):
         assert f'`{opt}' in text, opt
+
+
+@pytest.mark.parametrize('variant,channels', [('llvm_ad_mono', ['Y']), ('llvm_ad_spectral', ['B', 'G', 'R'])])
+def test_other_variants_write_their_channels(tmp_path, variant, channels):
+    """A monochrome variant's image is one channel (Y in the EXR, a grey PNG); a spectral
+    variant's is RGB, as the film develops it."""
+    out = tmp_path / 'v.exr'
+    r = run_cli(CORNELL, '-o', str(out), '--spp', '2', '-D', 'res=8', '--variant', variant, '-q')
+    assert r.returncode == 0, r.stderr
+    f = OpenEXR.File(str(out), separate_channels=True)
+    ch = {name: c.pixels for name, c in f.channels().items()}
+    assert sorted(ch) == channels
+    assert all(np.isfinite(ch[k]).all() and ch[k].max() > 0 for k in channels)
+    assert (tmp_path / 'v.png').exists()

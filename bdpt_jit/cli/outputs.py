@@ -53,12 +53,13 @@ def atomic_write(path, write_fn):
 
 
 def exr_channels(rgb, layers=None):
-    """Channel dict for OpenEXR: the image as R, G, B; each strategy layer as
-    ``<name>.weighted.R/G/B`` and ``<name>.unweighted.R/G/B``."""
+    """Channel dict for OpenEXR: the image as R, G, B (Y for a monochrome variant's one
+    channel); each strategy layer as ``<name>.weighted.R/G/B`` and ``<name>.unweighted.R/G/B``."""
     import numpy as np
     ch = {}
     rgb = np.asarray(rgb, dtype=np.float32)
-    for c, cname in enumerate('RGB'):
+    names = 'Y' if rgb.shape[2] == 1 else 'RGB'
+    for c, cname in enumerate(names):
         ch[cname] = np.ascontiguousarray(rgb[:, :, c])
     for name, kinds in (layers or {}).items():
         for kind in ('weighted', 'unweighted'):
@@ -82,6 +83,6 @@ def write_png(path, rgb):
     import numpy as np
     import mitsuba as mi
     a = np.ascontiguousarray(np.nan_to_num(np.asarray(rgb, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0))
-    png = mi.Bitmap(a, mi.Bitmap.PixelFormat.RGB).convert(
-        mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+    fmt = mi.Bitmap.PixelFormat.Y if a.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
+    png = mi.Bitmap(a, fmt).convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
     atomic_write(path, lambda tmp: png.write(tmp))
