@@ -99,3 +99,16 @@ class Context:
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
         self.stats = RayStats() if settings['statistics'] else None
+        self.evaluate_tables()
+
+    def evaluate_tables(self):
+        """Evaluate the tables' arrays now: left lazy, the first pass's kernels would compute
+        them inline and differ from every later pass's, and compile twice (measured: the three
+        main kernels of a 4-pass render compiled again for pass 2)."""
+        arrays = []
+        for obj in (self.emitters, self.offsets, self.diffuse, self.camera):
+            for v in (vars(obj).values() if obj is not None else ()):
+                if dr.is_jit_v(v):
+                    arrays.append(v)
+        if arrays:
+            dr.make_opaque(*arrays)

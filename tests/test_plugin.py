@@ -119,3 +119,24 @@ def test_render_without_develop_is_refused_with_a_reason():
     integ = mi.load_dict({'type': 'bdpt'})
     with pytest.raises(NotImplementedError, match='develop=False'):
         integ.render(scene, spp=1, develop=False)
+
+
+def test_every_pass_launches_the_same_kernels():
+    """A render of several passes compiles its kernels once: the first pass launches the same
+    kernels (by hash) as the later ones (tables left lazy made the first pass's differ)."""
+    import drjit as dr
+    from bdpt_jit.passes import RenderHooks
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=16)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'samples_per_pass': 16 * 16 * 2})
+    n = 16 * 16 * 2
+    seen = []
+
+    def on_pass(done, total):
+        seen.append(sorted(k['hash'] for k in dr.kernel_history()
+                           if k.get('type') == dr.KernelType.JIT and k.get('size') == n))
+    integ.hooks = RenderHooks(on_pass=on_pass)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        mi.render(scene, integrator=integ, spp=6, seed=0)
+    assert len(seen) == 3 and seen[0], seen
+    assert seen[0] == seen[1] == seen[2], seen
