@@ -12,7 +12,10 @@ sum to 1 over the strategies, and be finite and in [0, 1].
 Paths start on each emitter kind (endpoints.py): area (a surface point), delta position
 (point/spot: discrete position, no s=0 and no s=1,t=1), delta direction (directional: a
 discrete direction, its first edge from a disk, per unit projected area) and environment
-(constant/envmap: a direction per unit solid angle, first edge from a disk), and end on each
+(constant/envmap: a direction per unit solid angle, first edge from a disk) and a surface
+emitting along its normal only (directionalarea: no s=0 and no s=1 at all, since neither a
+camera ray nor emitter sampling can find it; x_1's light-side density is common to every
+remaining strategy), and end on each
 camera kind: a pinhole (z0 fixed) or a thin lens, whose lens point z0 every strategy samples
 with the same area density (camera rays and splats alike), which must cancel, or a camera that
 light tracing cannot reach (``delta``: orthographic, radiancemeter, ...;
@@ -30,7 +33,7 @@ from bdpt_jit.strategies import StrategySet
 M = 512   # random paths per length
 
 
-KINDS = ('area', 'delta_pos', 'delta_dir', 'env')
+KINDS = ('area', 'delta_pos', 'delta_dir', 'env', 'dir_area')
 
 
 def random_paths(rng, k, delta_prob, emitter='area'):
@@ -73,8 +76,10 @@ def allowed(technique, k, s, P):
         return np.zeros(M, bool)           # no light path reaches the camera
     if P['emitter'] != 'area' and s == 1 and t == 1:
         return np.zeros(M, bool)           # only a surface emitter can be seen by the camera
-    if P['emitter'] in ('delta_pos', 'delta_dir') and s == 0:
+    if P['emitter'] in ('delta_pos', 'delta_dir', 'dir_area') and s == 0:
         return np.zeros(M, bool)           # a delta emitter cannot be hit
+    if P['emitter'] == 'dir_area' and s == 1:
+        return np.zeros(M, bool)           # nor can emitter sampling find a directional surface
     if technique == 'pt' and not (s == 0 or (s == 1 and t >= 2)):
         return np.zeros(M, bool)
     if technique == 'lt' and t != 1:
@@ -107,6 +112,8 @@ def brute_force(kind, technique, P, p_lens=None):
                     p = p * P['p_disk'] * cosB[:, 0]
                 elif ek == 'delta_dir':
                     p = p * P['p_disk'] * cosB[:, 0]
+                elif ek == 'dir_area':                     # along x_0's normal: common to all
+                    p = p * cosB[:, 0]
                 else:
                     p = p * P['pdir_e'] * cosB[:, 0] / d2[:, 0]
             else:
@@ -140,8 +147,10 @@ def recursive(kind, technique, P):
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
     ek = P['emitter']
     infinite = ek in ('delta_dir', 'env')
-    delta = ek in ('delta_pos', 'delta_dir')
-    if ek == 'area' or ek == 'delta_pos':
+    delta = ek in ('delta_pos', 'delta_dir', 'dir_area')
+    if ek == 'dir_area':
+        pdf_emit_w = F(P['pA_light0'])                       # position; the direction is discrete
+    elif ek == 'area' or ek == 'delta_pos':
         pdf_emit_w = F(P['pA_light0'] * P['pdir_e'])
     elif ek == 'delta_dir':
         pdf_emit_w = F(P['pA_light0'] * P['p_disk'])         # discrete direction, disk position
@@ -152,7 +161,8 @@ def recursive(kind, technique, P):
     def light_state(last):                                   # at x_last (last >= 1)
         d_vc = mis.light_init(pdf_emit_w, F(cos_e0), B(np.full(M, delta)))
         d2_0 = np.ones(M) if infinite else d2[:, 0]
-        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(P['p_direct_a']), F(d2_0), F(cosB[:, 0]))
+        p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
+        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(p_direct), F(d2_0), F(cosB[:, 0]))
         for i in range(1, last):
             d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
@@ -179,6 +189,8 @@ def recursive(kind, technique, P):
             else:
                 pdf_direct_a = P['pA_light0'] if k == 1 else P['p_direct_a']
                 w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w)
+        elif s == 1 and ek == 'dir_area':
+            w = F(np.zeros(M))                               # the kernels never form it
         elif s == 1 and t == 1:
             w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0]), F(P['pA_light0']))
         elif s == 1:

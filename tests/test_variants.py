@@ -76,6 +76,7 @@ CASES = [
     ('llvm_ad_mono', 'box', 'bdpt', 'power'),
     ('llvm_ad_mono', 'box', 'pt', 'power'),
     ('llvm_ad_mono', 'box', 'lt', 'power'),
+    ('llvm_ad_mono', 'box', 'bdpt', 'uniform'),
     ('llvm_ad_spectral', 'textured', 'bdpt', 'power'),
     ('llvm_ad_spectral', 'textured', 'bdpt', 'uniform'),
     ('llvm_ad_spectral', 'textured', 'pt', 'power'),
