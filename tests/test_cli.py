@@ -193,7 +193,8 @@ def _unsupported_emitter_scene():
     if 'directionalarea' not in SUPPORTED_EMITTERS:
         return (SCENE_HEAD + '    <shape type="rectangle"><emitter type="directionalarea">'
                 '<rgb name="radiance" value="1"/></emitter></shape>\n</scene>\n', r"'directionalarea'.*not supported")
-    return (SCENE_HEAD + '    <shape type="rectangle"><emitter type="area">'
+    # a textured area light on a mesh (a cube's faces share uvs: Mitsuba samples one face only)
+    return (SCENE_HEAD + '    <shape type="cube"><emitter type="area">'
             '<texture name="radiance" type="checkerboard"/></emitter></shape>\n</scene>\n', 'not supported')
 
 
