@@ -796,7 +796,7 @@ def test_guard_film_zero_weight():
     from bdpt_jit.film import FilmAccumulator
     scene = load(sc.cornell(4, crop=(1, 1, 2, 2)))
     acc = FilmAccumulator(scene.sensors()[0].film())
-    acc.put_splat(mi.Point2f(0.5, 0.5), mi.Color3f(1.0, 2.0, 3.0), mi.Bool(True))
+    acc.put_splat(mi.Point2f(0.5, 0.5), mi.Color3f(1.0, 2.0, 3.0), mi.Bool(True), dr.zeros(mi.Color0f))
     w = np.array(acc.cam.tensor())[..., -1]
     assert np.all(w == 0)
     img = np.array(acc.develop())
