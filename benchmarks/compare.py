@@ -1,11 +1,25 @@
 """Comparison benchmarks of `bdpt` against Mitsuba's `path` and `ptracer`: error against run time.
 
 `bdpt` (power, balance and uniform MIS; technique pt and lt) and Mitsuba's `path` and `ptracer`, on the
-paper's scenes and the cases where BDPT should win. Writes `docs/results.md` with its plots and crops
-under `docs/results/`.
+paper's scenes and the cases where BDPT should win, and Mitsuba 0.6's `bdpt` and `path` (the seed
+paper's own comparison) where a built Mitsuba 0.6 is given. Writes `docs/results.md` with its plots
+and crops under `docs/results/` (the realistic mode: `docs/results-realistic.md` and its folder).
 
     python benchmarks/compare.py --quick      # 64x64, budgets up to 0.8 s: ~20 min, ~10 min with cached references
     python benchmarks/compare.py --full       # 96x96, budgets up to 2 s: ~50 min, ~20 min with cached references
+    python benchmarks/compare.py --realistic --scene-file veach-bidir=PATH/TO/veach-bidir/scene.xml
+                                              # 256x256, budgets 1, 4, 16, 64 s: bdpt, path, ptracer and
+                                              # Mitsuba 0.6's; ~20 min a scene on 2 cores once references
+                                              # are cached (they take hours the first time: see compare_lib.MODES)
+
+Scenes: the repository's (`--scenes` picks some), plus any given with `--scene-file KEY=PATH` (a Mitsuba 3
+scene file that takes `$res`, or `$resx` and `$resy`; options after commas: max_depth=N,
+reference=mixed|light, ref_scale=N, focus=1, title=TEXT). Users' scenes stay where they are.
+
+Mitsuba 0.6: `--mitsuba06 PATH/TO/dist` (or the environment variable MITSUBA06_DIST) names a Mitsuba 0.6
+built by `benchmarks/mitsuba06.py build`; its `bdpt` and `path` then join the tables and plots as
+"mitsuba06 bdpt" and "mitsuba06 path", measured against a reference rendered by its own `bdpt`.
+Without it, the report says it was absent.
 
 References are cached under `benchmarks/cache/`. Every setting of a mode can be overridden (the test
 runs a tiny configuration into a temporary folder):
@@ -25,6 +39,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import compare_lib as lib  # noqa: E402
 import compare_report as report  # noqa: E402
+import mitsuba06  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -33,11 +48,20 @@ def parse_args(argv=None):
     mode = ap.add_mutually_exclusive_group(required=True)
     mode.add_argument('--quick', action='store_const', const='quick', dest='mode', help='the quick mode')
     mode.add_argument('--full', action='store_const', const='full', dest='mode', help='the full mode')
+    mode.add_argument('--realistic', action='store_const', const='realistic', dest='mode',
+                      help='256x256, budgets 1 to 64 s (long: see the module docstring)')
     ap.add_argument('--scenes', default=','.join(s.key for s in lib.SCENES),
-                    help='comma-separated scene keys (default: all: %(default)s)')
-    ap.add_argument('--out', type=Path, default=lib.REPO / 'docs' / 'results.md', help='report (default: %(default)s)')
-    ap.add_argument('--fig-dir', type=Path, default=lib.REPO / 'docs' / 'results',
-                    help='plots, crops and results.json (default: %(default)s)')
+                    help='comma-separated keys of the repository\'s scenes, \'\' for none (default: all: %(default)s)')
+    ap.add_argument('--scene-file', action='append', default=[], metavar='KEY=PATH[,name=value...]',
+                    help='add a scene file of your own (repeatable); options: max_depth, reference, ref_scale, '
+                         'focus, title')
+    ap.add_argument('--contestants', help='comma-separated contestant keys (default: the mode\'s); known: '
+                    + ', '.join(c.key for c in lib.ALL_CONTESTANTS))
+    ap.add_argument('--mitsuba06', metavar='PATH/TO/dist',
+                    help=f'a built Mitsuba 0.6 (its dist/ folder or its `mitsuba`; default: ${mitsuba06.ENV_VAR})')
+    ap.add_argument('--out', type=Path, help='report (default: docs/results.md; --realistic: docs/results-realistic.md)')
+    ap.add_argument('--fig-dir', type=Path, help='plots, crops and results.json (default: docs/results/; '
+                    '--realistic: docs/results-realistic/)')
     ap.add_argument('--cache-dir', type=Path, default=lib.REPO / 'benchmarks' / 'cache',
                     help='reference cache (default: %(default)s)')
     g = ap.add_argument_group('overrides of the mode\'s settings')
@@ -50,9 +74,15 @@ def parse_args(argv=None):
     g.add_argument('--pilot-spp', type=int)
     g.add_argument('--pilot-batches', type=int)
     g.add_argument('--count-spp', type=int)
+    g.add_argument('--ref06-spp', type=int, help='spp of one batch of the Mitsuba 0.6 reference')
+    g.add_argument('--ref06-batches', type=int)
     args = ap.parse_args(argv)
+    name = 'results-realistic' if args.mode == 'realistic' else 'results'     # the realistic report apart
+    args.out = args.out or lib.REPO / 'docs' / f'{name}.md'
+    args.fig_dir = args.fig_dir or lib.REPO / 'docs' / name
     s = dataclasses.replace(lib.MODES[args.mode])
-    for field in ('res', 'repeats', 'ref_spp', 'ref_batches', 'pilot_spp', 'pilot_batches', 'count_spp'):
+    for field in ('res', 'repeats', 'ref_spp', 'ref_batches', 'pilot_spp', 'pilot_batches', 'count_spp',
+                  'ref06_spp', 'ref06_batches'):
         v = getattr(args, field)
         if v is not None:
             setattr(s, field, v)
@@ -62,14 +92,58 @@ def parse_args(argv=None):
         s.probe_spp = tuple(args.probe_spp)
     if list(s.budgets) != sorted(s.budgets) or min(s.budgets) <= 0:
         ap.error('--budgets must be positive and increasing')
-    if s.repeats < 1 or s.ref_batches < 2 or s.pilot_batches < 2 or s.res < 4:
-        ap.error('need --repeats >= 1, --ref-batches >= 2, --pilot-batches >= 2, --res >= 4')
+    if s.repeats < 1 or s.ref_batches < 2 or s.pilot_batches < 2 or s.ref06_batches < 2 or s.res < 4:
+        ap.error('need --repeats >= 1, --ref-batches >= 2, --pilot-batches >= 2, --ref06-batches >= 2, --res >= 4')
+    if args.contestants is not None:
+        keys = [k.strip() for k in args.contestants.split(',') if k.strip()]
+        known = [c.key for c in lib.ALL_CONTESTANTS]
+        unknown = [k for k in keys if k not in known]
+        if unknown:
+            ap.error(f"--contestants: unknown {', '.join(unknown)}; known: {', '.join(known)}")
+        missing = [k for k in lib.REQUIRED if k not in keys]
+        if missing:
+            ap.error(f"--contestants must include {', '.join(lib.REQUIRED)} (the tables are relative to them)")
+        s.contestants = tuple(keys)
     known = {sc.key: sc for sc in lib.SCENES}
     keys = [k.strip() for k in args.scenes.split(',') if k.strip()]
     unknown = [k for k in keys if k not in known]
-    if unknown or not keys:
+    if unknown or (not keys and not args.scene_file):
         ap.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(known)}")
-    return args, s, [known[k] for k in keys]
+    scenes = [known[k] for k in keys]
+    for text in args.scene_file:
+        try:
+            spec = lib.user_scene(text)
+        except ValueError as e:
+            ap.error(f'--scene-file {e}')
+        if spec.key in [sc.key for sc in scenes]:
+            ap.error(f'--scene-file: the key {spec.key} is taken')
+        scenes.append(spec)
+    return args, s, scenes
+
+
+def find_mitsuba06(args, settings, scenes):
+    """(Mitsuba06 or None, status for the report). Mitsuba 0.6's absence never stops the comparison: its
+    contestants are then left out and the report says why. Where it is found, every scene is converted
+    up front, so that a scene 0.6 cannot render fails now, not hours into the run."""
+    wanted = [c for c in lib.contestants_of(settings.contestants) if c.renderer == 'mitsuba06']
+    status = {'wanted': [c.label for c in wanted], 'used': False, 'how': None, 'version': None}
+    if not wanted:
+        status['how'] = 'not among the contestants (--contestants)'
+        return None, status
+    m06, how = mitsuba06.find(args.mitsuba06)
+    status['how'] = how
+    if m06 is None:
+        lib.log(f'Mitsuba 0.6 absent: {how}; the comparison goes on without {", ".join(status["wanted"])}')
+        return None, status
+    for spec in scenes:
+        try:
+            lib.scene06_file(spec, settings, args.cache_dir)
+        except mitsuba06.Mitsuba06Error as e:
+            sys.exit(f'compare.py: {spec.key} cannot be converted for Mitsuba 0.6: {e}\n'
+                     f'(leave its contestants out with --contestants, or the scene out)')
+    lib.log(f'Mitsuba 0.6: {how}')
+    status.update(used=True, version=m06.version, binary=str(m06.binary))
+    return m06, status
 
 
 def main(argv=None):
@@ -77,15 +151,18 @@ def main(argv=None):
     command = 'python benchmarks/compare.py ' + ' '.join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     info = lib.machine_info()
     info['date'] = datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')
+    m06, m06_status = find_mitsuba06(args, settings, scenes)
+    contestants = [c for c in lib.contestants_of(settings.contestants) if c.renderer != 'mitsuba06' or m06]
     t0 = time.perf_counter()
     results, images = [], {}
     for spec in scenes:
         lib.log(f'scene {spec.key} ({spec.file})')
-        res, img = lib.run_scene(spec, settings, lib.CONTESTANTS, args.cache_dir)
+        res, img = lib.run_scene(spec, settings, contestants, args.cache_dir, m06)
         results.append(res)
         images[spec.key] = img
     elapsed = time.perf_counter() - t0
-    report.write_report(results, images, lib.CONTESTANTS, settings, info, args.out, args.fig_dir, command, elapsed)
+    report.write_report(results, images, contestants, settings, info, args.out, args.fig_dir, command, elapsed,
+                        mitsuba06=m06_status)
     lib.log(f'wrote {args.out} and {args.fig_dir}/ in {elapsed / 60:.1f} min')
 
 

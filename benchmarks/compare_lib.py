@@ -1,18 +1,24 @@
-"""Error against run time: `bdpt` against Mitsuba's `path` and `ptracer` (the measurement part of
-`benchmarks/compare.py`; `compare_report.py` writes the report).
+"""Error against run time: `bdpt` against Mitsuba's `path` and `ptracer`, and against Mitsuba 0.6's
+`bdpt` and `path` where a built Mitsuba 0.6 is given (the measurement part of `benchmarks/compare.py`;
+`compare_report.py` writes the report, `mitsuba06.py` builds and runs Mitsuba 0.6).
 
 For each scene: a cached reference with its own remaining error, then every contestant over a range
 of time budgets (renders timed after a warm-up, medians over repeats, errors averaged over
 independent renders), an equal-sample point, ray counts, and the kernels compiled on the way.
+Mitsuba 0.6's contestants render a converted copy of the scene, whose pixels differ from the Mitsuba 3
+scene's by a few percent in places: their errors are measured against a reference of their own (a
+long render of 0.6's `bdpt`), over the same pixels.
 """
 
 import dataclasses
 import hashlib
 import json
 import os
+import re
 import statistics
 import sys
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import drjit as dr
@@ -23,6 +29,7 @@ mi.set_variant('llvm_ad_rgb')
 import bdpt_jit  # noqa: E402,F401  (registers the 'bdpt' integrator)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import mitsuba06  # noqa: E402
 import raycount  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,7 +39,7 @@ QUOTABLE = 0.1                  # a figure is quoted only where the reference's 
 EPS_REL = 0.1                   # relMSE denominator: ref^2 + (EPS_REL * mean of the reference over the region)^2
 
 # seeds: contestants count up from 1; references, their pilots and the ray counts use disjoint ranges
-SEED_REF, SEED_PILOT, SEED_COUNT = 1_000_000, 2_000_000, 3_000_000
+SEED_REF, SEED_PILOT, SEED_COUNT, SEED_REF06 = 1_000_000, 2_000_000, 3_000_000, 4_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +53,11 @@ class SceneSpec:
     crop: tuple             # (x0, y0, x1, y1) as fractions of the image
     focus: bool = False     # a scene where bdpt is expected to beat path at equal time (stated in the summary)
     ref_scale: int = 1      # the reference's batches take this many times the mode's ref_spp (hard scenes)
+    user: bool = False      # given with --scene-file (`file` is then an absolute path)
+
+    @property
+    def path(self):
+        return SCENE_DIR / self.file        # an absolute `file` stays as it is
 
 
 SCENES = [
@@ -70,12 +82,58 @@ SCENES = [
 ]
 
 
+def user_scene(text):
+    """A scene given on the command line: KEY=PATH[,max_depth=N][,reference=mixed|light][,ref_scale=N]
+    [,focus=1][,title=TEXT]. The scene file must take a `res` parameter or `resx` and `resy` (Mitsuba 3
+    `$name` parameters); max_depth defaults to the file's own `max_depth` default. Raises ValueError."""
+    key, sep, rest = text.partition('=')
+    key = key.strip()
+    if not sep or not key or not re.fullmatch(r'[A-Za-z0-9_.-]+', key):
+        raise ValueError(f'{text!r}: expected KEY=PATH[,name=value...] with a key of letters, digits, -, _ or .')
+    file, *opts = rest.split(',')
+    path = Path(file).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f'{key}: no scene file {path}')
+    kw = {}
+    for opt in opts:
+        name, sep, value = opt.partition('=')
+        name = name.strip()
+        if not sep or name not in ('max_depth', 'reference', 'ref_scale', 'focus', 'title'):
+            raise ValueError(f'{key}: unknown option {opt!r} (max_depth, reference, ref_scale, focus, title)')
+        kw[name] = value.strip()
+    names = scene_parameters(path)
+    if 'res' not in names and not {'resx', 'resy'} <= names:
+        raise ValueError(f'{key}: {path} takes neither a $res parameter nor $resx and $resy: the comparison '
+                         f'cannot set its resolution')
+    if 'max_depth' not in kw:
+        m = re.search(r'<default\s+name="max_depth"\s+value="(-?\d+)"', path.read_text())
+        if not m:
+            raise ValueError(f'{key}: {path} has no max_depth default: add max_depth=N')
+        kw['max_depth'] = m.group(1)
+    if kw.get('reference', 'mixed') not in ('mixed', 'light'):
+        raise ValueError(f"{key}: reference must be 'mixed' (path and ptracer) or 'light' (ptracer)")
+    return SceneSpec(key, str(path), kw.get('title', f'{key} ({path.parent.name}/{path.name}, given with --scene-file)'),
+                     f'a scene given with --scene-file ({path})', kw.get('reference', 'mixed'), int(kw['max_depth']),
+                     (0.25, 0.25, 0.75, 0.75), focus=kw.get('focus', '0') not in ('0', 'false', 'no', ''),
+                     ref_scale=int(kw.get('ref_scale', 1)), user=True)
+
+
+def scene_parameters(path):
+    """The `$name` parameters a Mitsuba 3 scene file uses (mi.load_file refuses others)."""
+    names = set()
+    for e in ET.parse(path).getroot().iter():         # comments left out
+        for v in e.attrib.values():
+            names.update(re.findall(r'\$([A-Za-z_][A-Za-z0-9_]*)', v))
+    return names
+
+
 @dataclasses.dataclass(frozen=True)
 class Contestant:
     key: str
     label: str
     props: dict
     replica: bool = False   # rays counted by the replica in raycount.py (Mitsuba's integrators count none)
+    renderer: str = 'mitsuba3'     # or 'mitsuba06': rendered by a built Mitsuba 0.6 (props['type'] is its integrator)
 
 
 CONTESTANTS = [
@@ -87,7 +145,15 @@ CONTESTANTS = [
     Contestant('path', 'Mitsuba path', {'type': 'path'}, replica=True),
     Contestant('ptracer', 'Mitsuba ptracer', {'type': 'ptracer'}, replica=True),
 ]
+# Mitsuba 0.6's `bdpt` and `path`, as the seed paper's tables have them: added where a built Mitsuba 0.6
+# is found (benchmarks/mitsuba06.py), each with the scene's max depth and rrDepth 5. They count no rays.
+MITSUBA06_CONTESTANTS = [
+    Contestant('mitsuba06-bdpt', 'mitsuba06 bdpt', {'type': 'bdpt'}, renderer='mitsuba06'),
+    Contestant('mitsuba06-path', 'mitsuba06 path', {'type': 'path'}, renderer='mitsuba06'),
+]
+ALL_CONTESTANTS = CONTESTANTS + MITSUBA06_CONTESTANTS
 BASELINE = 'path'
+REQUIRED = ('bdpt', BASELINE)       # the summary and the equal-sample point are relative to these
 
 
 @dataclasses.dataclass
@@ -102,6 +168,9 @@ class Settings:
     pilot_spp: int          # pilot batches: they choose the per-pixel weights of the combined reference
     pilot_batches: int
     count_spp: int          # spp of the ray-count renders (rays per sample, scaled to each table's spp)
+    contestants: tuple = tuple(c.key for c in ALL_CONTESTANTS)  # Mitsuba 0.6's only where it is found
+    ref06_spp: int = 256    # Mitsuba 0.6's reference: ref06_batches renders of its bdpt at this spp
+    ref06_batches: int = 8
 
 
 MODES = {
@@ -109,7 +178,24 @@ MODES = {
                       ref_batches=16, pilot_spp=512, pilot_batches=4, count_spp=4),
     'full': Settings('full', res=96, budgets=(0.25, 0.5, 1.0, 2.0), repeats=4, probe_spp=(1, 8), ref_spp=1024,
                      ref_batches=16, pilot_spp=512, pilot_batches=4, count_spp=4),
+    # Images of the size people render and budgets long enough for every error curve to reach its
+    # -1 slope (error ~ 1/time). The references take the longest: per scene, 16 batches of 1024 spp
+    # of Mitsuba 3's path and of its ptracer (times the scene's ref_scale) at 256x256, i.e. about
+    # 2 x 16384 x 65536 = 2.1e9 samples (~15-30 min on 2 cores, hours for the caustic scenes with
+    # their ref_scale), and 16 x 128 spp of Mitsuba 0.6's bdpt (~17 min for Veach's room on 2 cores).
+    # Cached in benchmarks/cache/; --ref-spp, --ref-batches, --ref06-spp and --ref06-batches change
+    # them (a figure is quoted only where the reference's error is below 0.1 of it: at 64 s, raise
+    # --ref-spp for the scenes where bdpt wins by much).
+    'realistic': Settings('realistic', res=256, budgets=(1.0, 4.0, 16.0, 64.0), repeats=1, probe_spp=(1, 4),
+                          ref_spp=1024, ref_batches=16, pilot_spp=256, pilot_batches=4, count_spp=1,
+                          contestants=('bdpt', 'path', 'ptracer', 'mitsuba06-bdpt', 'mitsuba06-path'),
+                          ref06_spp=128, ref06_batches=16),
 }
+
+
+def contestants_of(keys):
+    """Contestant objects for keys, in the order of ALL_CONTESTANTS."""
+    return [c for c in ALL_CONTESTANTS if c.key in keys]
 
 
 def log(msg):
@@ -125,7 +211,17 @@ def to_np(img):
 
 
 def load_scene(spec, res):
-    return mi.load_file(str(SCENE_DIR / spec.file), res=res, max_depth=spec.max_depth, integrator='path')
+    """The scene at res x res with Mitsuba's `path` as its integrator, passing only the parameters the
+    file takes (`res`, or `resx` and `resy`; `max_depth`; `integrator`)."""
+    names = scene_parameters(spec.path)
+    kw = {k: v for k, v in (('res', res), ('resx', res), ('resy', res), ('max_depth', spec.max_depth),
+                            ('integrator', 'path')) if k in names}
+    scene = mi.load_file(str(spec.path), **kw)
+    size = [int(v) for v in scene.sensors()[0].film().crop_size()]
+    if size != [res, res]:
+        raise ValueError(f'{spec.path}: its film is {size[0]}x{size[1]}, not {res}x{res}: the file must take '
+                         f'a $res parameter, or $resx and $resy, for its width and height')
+    return scene
 
 
 def make_integrator(contestant, max_depth, **extra):
@@ -194,7 +290,7 @@ class Reference:
 
 
 def reference_key(spec, s):
-    text = (SCENE_DIR / spec.file).read_bytes()
+    text = spec.path.read_bytes()
     parts = (REF_VERSION, mi.__version__, dr.__version__, spec.file, hashlib.sha1(text).hexdigest(),
              spec.reference, spec.max_depth, s.res, s.ref_spp, s.ref_batches, s.pilot_spp, s.pilot_batches,
              spec.ref_scale)
@@ -265,6 +361,62 @@ def reference(spec, scene, s, cache_dir):
     return combine(spec, parts, dict(meta, cached=False))
 
 
+def scene06_file(spec, s, cache_dir):
+    """The Mitsuba 0.6 form of the scene at the mode's resolution (written under cache_dir/mitsuba06/)."""
+    dst = Path(cache_dir) / 'mitsuba06' / f'{spec.key}-{s.res}.xml'
+    mitsuba06.convert_file(spec.path, dst, {'res': s.res, 'resx': s.res, 'resy': s.res}, spec.max_depth)
+    return dst
+
+
+def reference06(spec, m06, scene06, s, cache_dir, region):
+    """Mitsuba 0.6's own reference: `ref06_batches` renders of its bdpt at `ref06_spp`, each with its own
+    seed (mitsuba06.SEED_EDIT), over the same pixels as the Mitsuba 3 reference. Its own bdpt renders
+    every path of the converted scene (the sun's caustics included); the report sets it beside the
+    Mitsuba 3 reference (`agreement`)."""
+    text = Path(scene06).read_bytes()
+    parts = (REF_VERSION, m06.identity, hashlib.sha1(text).hexdigest(), s.res, s.ref06_spp, s.ref06_batches)
+    path = Path(cache_dir) / f'ref06-{spec.key}-{hashlib.sha1(repr(parts).encode()).hexdigest()[:16]}.npz'
+    meta = {'kind': 'mitsuba06 bdpt', 'spp': s.ref06_spp * s.ref06_batches, 'batches': s.ref06_batches,
+            'res': s.res, 'max_depth': spec.max_depth}
+    if path.exists():
+        z = np.load(path)
+        meta = dict(json.loads(str(z['meta'])), cached=True)
+        mean, var = z['mean'], z['var']
+    else:
+        log(f'{spec.key}: rendering the Mitsuba 0.6 reference ({s.ref06_batches} batches of {s.ref06_spp} spp '
+            f'of its bdpt)')
+        t0 = time.perf_counter()
+        s1 = s2 = None
+        for b in range(s.ref06_batches):
+            _, _, img = m06.render(scene06, 'bdpt', s.ref06_spp, seed=SEED_REF06 + b)
+            a = to_np(img)
+            s1 = a if s1 is None else s1 + a
+            s2 = a * a if s2 is None else s2 + a * a
+        n = s.ref06_batches
+        mean = s1 / n
+        var = np.maximum(s2 / n - mean * mean, 0.0) * n / (n - 1) / n
+        meta['render_s'] = time.perf_counter() - t0
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f'.{os.getpid()}.tmp.npz')
+        np.savez_compressed(tmp, meta=json.dumps(meta), mean=mean, var=var)
+        os.replace(tmp, path)
+        meta = dict(meta, cached=False)
+    if mean.shape[:2] != region.shape:
+        raise ValueError(f'{scene06}: Mitsuba 0.6 rendered {mean.shape[1]}x{mean.shape[0]} pixels, '
+                         f'not {region.shape[1]}x{region.shape[0]}')
+    return Reference(mean, var, region, np.zeros(region.shape), meta)
+
+
+def agreement(ref, ref06):
+    """How far the Mitsuba 0.6 reference is from the Mitsuba 3 one (relMSE over the region, with the Mitsuba 3
+    reference's eps), and what their own errors alone would give: far above it, the converted scene differs."""
+    r = ref.region
+    denom = ref.mean[r] ** 2 + ref.eps
+    return {'rel': float((((ref06.mean - ref.mean) ** 2)[r] / denom).mean()),
+            'expected_rel': float(((ref.var + ref06.var)[r] / denom).mean()),
+            'mean_ratio': float(ref06.mean[r].mean() / max(ref.mean[r].mean(), 1e-300))}
+
+
 # ------------------------------------------------------------------------------------------ contestants
 
 def errors(img, ref):
@@ -284,17 +436,29 @@ def kernel_summary(history):
 class Runner:
     """Renders and times the contestants of one scene."""
 
-    def __init__(self, spec, scene, ref, s, contestants):
+    def __init__(self, spec, scene, ref, s, contestants, m06=None, scene06=None, ref06=None):
         self.spec, self.scene, self.ref, self.s = spec, scene, ref, s
         self.contestants = contestants
-        self.integrators = {c.key: make_integrator(c, spec.max_depth) for c in contestants}
+        self.by_key = {c.key: c for c in contestants}
+        self.integrators = {c.key: make_integrator(c, spec.max_depth) for c in contestants
+                            if c.renderer == 'mitsuba3'}
+        self.m06, self.scene06 = m06, scene06                 # Mitsuba 0.6 and the scene's 0.6 form
+        self.refs = {c.key: ref06 if c.renderer == 'mitsuba06' else ref for c in contestants}
         self.seed = 0
         self.points = {c.key: [] for c in contestants}      # sweep points, in order
         self.compile = {c.key: [] for c in contestants}     # one record per warm-up render
         self.images = {}                                      # (key, spp) -> last image
+        self.overhead06 = []                                  # 0.6: process start + scene loading (s), not timed
 
     def _render(self, key, spp):
         self.seed += 1
+        c = self.by_key[key]
+        if c.renderer == 'mitsuba06':
+            # its own render time (scene loading left out, as mi.load_file is for Mitsuba 3); the seed
+            # makes each render independent (mitsuba06.SEED_EDIT)
+            t, wall, img = self.m06.render(self.scene06, c.props['type'], spp, seed=self.seed)
+            self.overhead06.append(wall - t)
+            return t, to_np(img)
         dr.sync_thread()
         t0 = time.perf_counter()
         img = mi.render(self.scene, integrator=self.integrators[key], spp=spp, seed=self.seed)
@@ -315,12 +479,12 @@ class Runner:
             hist = dr.kernel_history()
             dr.set_flag(dr.JitFlag.KernelHistory, False)
             self.compile[key].append(dict(kernel_summary(hist), spp=spp, warmup_s=wall))
-            out[key] = {'spp': spp, 'times': [], 'errs': [errors(img, self.ref)], 'warmup_s': wall}
+            out[key] = {'spp': spp, 'times': [], 'errs': [errors(img, self.refs[key])], 'warmup_s': wall}
         for _ in range(self.s.repeats):
             for key, spp in spp_of.items():
                 t, img = self._render(key, spp)
                 out[key]['times'].append(t)
-                out[key]['errs'].append(errors(img, self.ref))
+                out[key]['errs'].append(errors(img, self.refs[key]))
                 self.images[(key, spp)] = img
         for key, p in out.items():
             e = np.array(p.pop('errs'))
@@ -397,6 +561,9 @@ class Runner:
         spp = self.s.count_spp
         for i, c in enumerate(self.contestants):
             seed = SEED_COUNT + i
+            if c.renderer == 'mitsuba06':
+                out[c.key] = None           # Mitsuba 0.6 counts no rays, and no replica replays it
+                continue
             if c.replica:
                 r = raycount.count(c.key, self.scene, self.spec.max_depth, spp, seed=seed)
             else:
@@ -410,14 +577,29 @@ class Runner:
         return out
 
 
-def run_scene(spec, s, contestants, cache_dir):
+def run_scene(spec, s, contestants, cache_dir, m06=None):
+    """Measures one scene. `m06`: a mitsuba06.Mitsuba06, needed where `contestants` hold Mitsuba 0.6's."""
     t0 = time.perf_counter()
     scene = load_scene(spec, s.res)
     ref = reference(spec, scene, s, cache_dir)
     ref_mse, ref_rel = ref.expected_errors()
     how = 'cached' if ref.meta['cached'] else f"rendered in {ref.meta['render_s']:.0f} s"
     log(f'{spec.key}: reference {how}, its expected relMSE {ref_rel:.3g}')
-    runner = Runner(spec, scene, ref, s, contestants)
+    ref06 = scene06 = None
+    ref06_info = None
+    if any(c.renderer == 'mitsuba06' for c in contestants):
+        if m06 is None:
+            raise ValueError('Mitsuba 0.6 contestants without a Mitsuba 0.6 binary')
+        scene06 = scene06_file(spec, s, cache_dir)
+        ref06 = reference06(spec, m06, scene06, s, cache_dir, ref.region)
+        mse06, rel06 = ref06.expected_errors()
+        ref06_info = dict(ref06.meta, expected_mse=mse06, expected_rel=rel06, eps=ref06.eps,
+                          agreement=agreement(ref, ref06), scene06=str(scene06))
+        how = 'cached' if ref06.meta['cached'] else f"rendered in {ref06.meta['render_s']:.0f} s"
+        log(f'{spec.key}: Mitsuba 0.6 reference {how}, its expected relMSE {rel06:.3g}; against the Mitsuba 3 '
+            f"reference: relMSE {ref06_info['agreement']['rel']:.3g} "
+            f"(their own errors: {ref06_info['agreement']['expected_rel']:.3g})")
+    runner = Runner(spec, scene, ref, s, contestants, m06, scene06, ref06)
     runner.sweep()
     es_spp, es = runner.equal_samples()
     rays = runner.count_rays()
@@ -428,6 +610,9 @@ def run_scene(spec, s, contestants, cache_dir):
     result = {
         'spec': dataclasses.asdict(spec),
         'reference': dict(ref.meta, expected_mse=ref_mse, expected_rel=ref_rel, eps=ref.eps),
+        'reference06': ref06_info,          # Mitsuba 0.6's contestants are measured against this one
+        'reference_of': {c.key: 'reference06' if c.renderer == 'mitsuba06' else 'reference' for c in contestants},
+        'overhead06_s': statistics.median(runner.overhead06) if runner.overhead06 else None,
         'sweep': runner.points,
         'equal_time': {'budget_s': s.budgets[-1], 'points': et},
         'equal_samples': {'spp': es_spp, 'points': es},

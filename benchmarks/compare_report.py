@@ -1,5 +1,5 @@
 """The report of `benchmarks/compare.py`: `docs/results.md`, its plots and image crops, and the raw
-figures as JSON. Reads only what `compare_lib.run_scene` measured."""
+figures as JSON. Reads only what `compare_lib.run_scene` measured (and whether Mitsuba 0.6 was found)."""
 
 import json
 import math
@@ -19,6 +19,7 @@ STYLE = {
     'bdpt': ('tab:red', 'o', '-'), 'bdpt-balance': ('tab:orange', 's', '-'), 'bdpt-uniform': ('tab:brown', 'v', '-'),
     'bdpt-pt': ('tab:purple', '^', '--'), 'bdpt-lt': ('tab:pink', 'D', '--'),
     'path': ('tab:blue', 'o', '-'), 'ptracer': ('tab:cyan', 's', '-'),
+    'mitsuba06-bdpt': ('tab:green', 'P', ':'), 'mitsuba06-path': ('tab:olive', 'X', ':'),
 }
 
 
@@ -39,6 +40,12 @@ def quotable(value, ref_error):
 def qfmt(value, ref_error):
     """A figure, or in parentheses with a dagger where the reference's own error is too large to quote it."""
     return fmt(value) if quotable(value, ref_error) else f'({fmt(value)})†'
+
+
+def ref_err(res, key, field='rel'):
+    """The expected error of the reference `key`'s errors are measured against (Mitsuba 0.6's own for its
+    contestants): a figure is quotable only well above it."""
+    return res[res.get('reference_of', {}).get(key, 'reference')][f'expected_{field}']
 
 
 def table(header, rows):
@@ -126,19 +133,21 @@ def plot_errors(res, contestants, path):
     spec = res['spec']
     ref = res['reference']
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for ax, field, ref_err, name in ((axes[0], 'rel', ref['expected_rel'], 'relative MSE'),
-                                     (axes[1], 'mse', ref['expected_mse'], 'MSE')):
+    for ax, field, name in ((axes[0], 'rel', 'relative MSE'), (axes[1], 'mse', 'MSE')):
         for c in contestants:
             pts = sorted(res['sweep'][c.key], key=lambda p: p['time'])
             t = np.array([p['time'] for p in pts])
             e = np.array([p[field] for p in pts])
             color, marker, ls = STYLE.get(c.key, ('k', 'o', '-'))
             ax.plot(t, e, ls, color=color, lw=1.2, label=c.label)
-            ok = np.array([quotable(v, ref_err) for v in e])
+            ok = np.array([quotable(v, ref_err(res, c.key, field)) for v in e])
             ax.plot(t[ok], e[ok], marker, color=color, ms=5, ls='none')
             ax.plot(t[~ok], e[~ok], marker, color=color, ms=5, ls='none', mfc='none')
-        ax.axhline(ref_err, color='k', ls=':', lw=1, label="reference's own error")
-        ax.axhline(ref_err / QUOTABLE, color='grey', ls='--', lw=0.8, label='quotable above')
+        ax.axhline(ref[f'expected_{field}'], color='k', ls=':', lw=1, label="reference's own error")
+        ax.axhline(ref[f'expected_{field}'] / QUOTABLE, color='grey', ls='--', lw=0.8, label='quotable above')
+        if res.get('reference06'):
+            ax.axhline(res['reference06'][f'expected_{field}'], color='tab:green', ls=':', lw=1,
+                       label="Mitsuba 0.6 reference's own error")
         ax.axvline(res['equal_time']['budget_s'], color='grey', ls='-.', lw=0.8)
         ax.set_xscale('log')
         ax.set_yscale('log')
@@ -146,7 +155,8 @@ def plot_errors(res, contestants, path):
         ax.set_ylabel(name)
         ax.grid(True, which='both', alpha=0.3)
     axes[0].legend(fontsize=7, loc='lower left')
-    fig.suptitle(f"{spec['title']} ({spec['file']}): error against time; hollow markers: not quotable", fontsize=10)
+    where = '' if spec.get('user') else f" ({spec['file']})"         # a user's scene has its file in its title
+    fig.suptitle(f"{spec['title']}{where}: error against time; hollow markers: not quotable", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -177,19 +187,21 @@ def plot_summary(results, contestants, path):
 
 # ------------------------------------------------------------------------------------------ markdown
 
-def ratio_cell(et, key, ref_err, field='rel'):
+def ratio_cell(res, key, field='rel'):
+    """A contestant's error at equal time over `path`'s, each quotable against its own reference."""
+    et = res['equal_time']['points']
     r = et[key][field] / et[BASELINE][field]
-    ok = quotable(et[key][field], ref_err) and quotable(et[BASELINE][field], ref_err)
+    ok = quotable(et[key][field], ref_err(res, key, field)) and quotable(et[BASELINE][field],
+                                                                          ref_err(res, BASELINE, field))
     return (f'{r:.3g}' if ok else f'({r:.3g})†'), r, ok
 
 
 def verdict(res, contestants):
     spec = res['spec']
     et = res['equal_time']['points']
-    ref_rel = res['reference']['expected_rel']
     b, p = et['bdpt'], et[BASELINE]
-    cell, r, ok = ratio_cell(et, 'bdpt', ref_rel)
-    _, r_mse, ok_mse = ratio_cell(et, 'bdpt', res['reference']['expected_mse'], 'mse')
+    cell, r, ok = ratio_cell(res, 'bdpt')
+    _, r_mse, ok_mse = ratio_cell(res, 'bdpt', 'mse')
     best = min(contestants, key=lambda c: et[c.key]['rel'])
     figures = (f"relMSE {fmt(b['rel'])} ± {fmt(b['rel_se'])} ({b['spp']} spp, {b['time']:.2f} s) against "
                f"path's {fmt(p['rel'])} ± {fmt(p['rel_se'])} ({p['spp']} spp, {p['time']:.2f} s): ratio {r:.3g}"
@@ -205,19 +217,46 @@ def verdict(res, contestants):
     if ok and ok_mse and (r < 1) != (r_mse < 1):
         extra += ('; relMSE and MSE disagree' + (" (path is biased here: it misses the sun's caustics)"
                                                   if spec['reference'] == 'light' else ''))
-    return f"- **{spec['title']}** (`{spec['file']}`): {head}: {figures}{extra}."
+    if 'mitsuba06-bdpt' in et:
+        m = et['mitsuba06-bdpt']
+        cell06, _, _ = ratio_cell(res, 'mitsuba06-bdpt')
+        extra += (f"; Mitsuba 0.6's bdpt: relMSE {fmt(m['rel'])} ({m['spp']} spp, {m['time']:.2f} s, against its own "
+                  f"reference): ratio to path {cell06}, `bdpt`'s relMSE / its {b['rel'] / m['rel']:.3g}")
+    return f"- **{spec['title']}** (`{scene_file(spec)}`): {head}: {figures}{extra}."
 
 
-def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed):
+def scene_file(spec):
+    return spec['file'] if spec.get('user') else f"scenes/{spec['file']}"
+
+
+def mitsuba06_line(status):
+    """The report's line on Mitsuba 0.6: which binary, or that it was absent and why."""
+    if status is None or not status.get('wanted'):
+        return ("- Mitsuba 0.6: not among the contestants"
+                + (f" ({status['how']})" if status and status.get('how') else '') + '.')
+    if not status.get('used'):
+        return (f"- Mitsuba 0.6: **absent**: {status['how']}. Its contestants ({', '.join(status['wanted'])}) are "
+                "not in the tables and plots; build it with `python benchmarks/mitsuba06.py build --source DIR` "
+                "and pass `--mitsuba06 DIR/dist`.")
+    return (f"- Mitsuba 0.6: {status['how']}; {', '.join(status['wanted'])} render the scene's Mitsuba 0.6 form "
+            "(`benchmarks/mitsuba06.py`) and are measured against a reference of 0.6's own `bdpt` (the converted "
+            "scene differs from the Mitsuba 3 one by a few percent in places); times are 0.6's own \"Render time\" "
+            "(process start and scene loading left out, as `mi.load_file` is for Mitsuba 3), and each render has "
+            "its own sampler seed (the seed edit of `benchmarks/mitsuba06.py`).")
+
+
+def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed, mitsuba06=None):
     out_md = Path(out_md)
     fig_dir = Path(fig_dir)
     fig_dir.mkdir(parents=True, exist_ok=True)
     out_md.parent.mkdir(parents=True, exist_ok=True)
     rel = lambda p: os.path.relpath(p, out_md.parent).replace(os.sep, '/')  # noqa: E731
     names = {c.key: c.label for c in contestants}
+    jit = [c for c in contestants if c.renderer == 'mitsuba3']      # the contestants Dr.Jit compiles kernels for
+    used06 = any(c.renderer == 'mitsuba06' for c in contestants)
     L = []
     dirty = ' (with uncommitted changes)' if info['dirty'] else ''
-    L += ['# Comparison benchmarks: `bdpt` against Mitsuba 3', '',
+    L += ['# Comparison benchmarks: `bdpt` against Mitsuba 3' + (' and Mitsuba 0.6' if used06 else ''), '',
           f"Generated by `{command}` (**{settings.mode} mode**) on {info['date']} in {elapsed / 60:.1f} min.",
           '',
           f"- Machine: {info['cpu']}, {info['cores']} cores"
@@ -230,9 +269,12 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
           f"(the last is the equal-time budget) after probes at {', '.join(map(str, settings.probe_spp))} spp; "
           f"{settings.repeats} timed renders per point after one warm-up render; references in "
           f"{settings.ref_batches} batches of {settings.ref_spp} spp times a per-scene factor (below); rays counted at "
-          f"{settings.count_spp} spp.",
+          f"{settings.count_spp} spp" + (f"; Mitsuba 0.6's references in {settings.ref06_batches} batches of "
+                                         f"{settings.ref06_spp} spp of its `bdpt`" if used06 else '') + '.',
           f"- Contestants, all with the scene's `max_depth` and `rr_depth` 5: "
-          + ', '.join(f'{c.label} (`{json.dumps(c.props)}`)' for c in contestants) + '.',
+          + ', '.join(f'{c.label} (`{json.dumps(c.props)}`' + (', Mitsuba 0.6)' if c.renderer == 'mitsuba06' else ')')
+                      for c in contestants) + '.',
+          mitsuba06_line(mitsuba06),
           '']
     L += ['## Summary: relative MSE at equal time, as a ratio to Mitsuba `path`', '',
           f"Each cell is a contestant's relative MSE divided by `path`'s, both rendered with the same wall-clock budget "
@@ -240,20 +282,16 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
           f"† marks a figure that is not quotable: the reference's own expected error exceeds {QUOTABLE:g} of it.", '']
     rows = []
     for r in results:
-        et = r['equal_time']['points']
-        ref_rel = r['reference']['expected_rel']
         rows.append([r['spec']['key'], f"{r['equal_time']['budget_s']:g}"] +
-                    [ratio_cell(et, c.key, ref_rel)[0] for c in contestants])
+                    [ratio_cell(r, c.key)[0] for c in contestants])
     L += [table(['scene', 'budget (s)'] + [names[c.key] for c in contestants], rows), '']
     L += ["The same for MSE (not normalised per pixel: bright pixels weigh most). The two can disagree where a "
           "contestant is biased: `path` misses the sun's caustics in the Figure 7 scenes, which costs it at most "
           "a relative error of 1 in each caustic pixel but a large absolute one.", '']
     rows = []
     for r in results:
-        et = r['equal_time']['points']
-        ref_mse = r['reference']['expected_mse']
         rows.append([r['spec']['key'], f"{r['equal_time']['budget_s']:g}"] +
-                    [ratio_cell(et, c.key, ref_mse, 'mse')[0] for c in contestants])
+                    [ratio_cell(r, c.key, 'mse')[0] for c in contestants])
     L += [table(['scene', 'budget (s)'] + [names[c.key] for c in contestants], rows), '']
     plot_summary(results, contestants, fig_dir / 'summary.png')
     L += [f"![equal-time ratios]({rel(fig_dir / 'summary.png')})", '']
@@ -271,9 +309,11 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
           'sample count, whose compilation Dr.Jit\'s kernel history records (LLVM codegen and backend). '
           '"New kernels per warm-up" counts kernels compiled or loaded from the disk cache, i.e. not already in '
           'memory: well above 0 means the contestant\'s kernels depend on the sample count, so every new sample '
-          'count costs a compilation (or a disk-cache load when the benchmark ran before).', '']
+          'count costs a compilation (or a disk-cache load when the benchmark ran before).'
+          + (' Mitsuba 0.6 compiles nothing at run time: its contestants are not in these tables.' if used06 else ''),
+          '']
     rows = []
-    for c in contestants:
+    for c in jit:
         recs = [x for r in results for x in r['compile'][c.key]]
         firsts = [r['sweep'][c.key][0] for r in results]
         rows.append([c.label, len(recs), sum(x['compiled'] for x in recs),
@@ -290,7 +330,7 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
     for r in results:
         spec, ref = r['spec'], r['reference']
         key = spec['key']
-        L += [f"## {spec['title']} (`scenes/{spec['file']}`)", '', f"What it tests: {spec['tests']}. "
+        L += [f"## {spec['title']} (`{scene_file(spec)}`)", '', f"What it tests: {spec['tests']}. "
               f"max_depth {spec['max_depth']}. Measured in {r['seconds']:.0f} s.", '']
         if ref['kind'] == 'light':
             L += [f"Reference: Mitsuba `ptracer`, {ref['spp_ptracer']} spp ({ref['batches']} batches). `path` cannot "
@@ -309,6 +349,17 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
         L += ['', f"Reference's own expected error (the batch variance of its mean, averaged like the errors): MSE "
               f"{fmt(ref['expected_mse'])}, relMSE {fmt(ref['expected_rel'])} ({how}). "
               f"Contestants' errors include it; figures below {1 / QUOTABLE:g}x it are marked †.", '']
+        r06 = r.get('reference06')
+        if r06:
+            how06 = 'cached' if r06['cached'] else 'rendered in %.0f s' % r06['render_s']
+            ag = r06['agreement']
+            L += [f"Mitsuba 0.6's contestants are measured against 0.6's own `bdpt` at {r06['spp']} spp "
+                  f"({r06['batches']} batches, {how06}) over the same pixels: its expected MSE {fmt(r06['expected_mse'])}, "
+                  f"relMSE {fmt(r06['expected_rel'])}. Set beside the Mitsuba 3 reference: relMSE {fmt(ag['rel'])} where "
+                  f"their own errors account for {fmt(ag['expected_rel'])}, mean ratio {ag['mean_ratio']:.4f} (0.6 / 3)"
+                  + (': the converted scene differs from the Mitsuba 3 one' if ag['rel'] > 3 * ag['expected_rel'] else '')
+                  + (f". Each 0.6 render also spent a median {r['overhead06_s']:.2f} s starting and loading the scene "
+                     f"(not in its time)" if r.get('overhead06_s') is not None else '') + '.', '']
         plot_errors(r, contestants, fig_dir / f'{key}-error.png')
         L += [f"![error against time]({rel(fig_dir / f'{key}-error.png')})", '']
 
@@ -318,7 +369,7 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
         for c in contestants:
             for p in r['sweep'][c.key]:
                 rows.append([names[c.key], p['stage'], p['spp'], f"{p['time']:.3f}",
-                             qfmt(p['mse'], ref['expected_mse']), qfmt(p['rel'], ref['expected_rel']),
+                             qfmt(p['mse'], ref_err(r, c.key, 'mse')), qfmt(p['rel'], ref_err(r, c.key)),
                              fmt(p['rel_se'])])
         L += [table(['contestant', 'point', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.'], rows), '',
               '</details>', '']
@@ -326,6 +377,8 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
         def rays_cells(key, spp):
             w = r['reference']['res']
             ry = r['rays'][key]
+            if ry is None:              # Mitsuba 0.6 counts no rays
+                return ['–'] * 3
             n = w * w * spp
             tot, zero = ry['rays_per_sample'] * n, ry['zero_per_sample'] * n
             return [f'{tot / 1e6:.3g}', f'{zero / 1e6:.3g}', f"{100 * zero / tot if tot else 0:.1f}"]
@@ -335,8 +388,8 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
         rows = []
         for c in contestants:
             p = es['points'][c.key]
-            rows.append([names[c.key], p['spp'], qfmt(p['mse'], ref['expected_mse']),
-                         qfmt(p['rel'], ref['expected_rel']), f"{p['time']:.3f}"] + rays_cells(c.key, p['spp']))
+            rows.append([names[c.key], p['spp'], qfmt(p['mse'], ref_err(r, c.key, 'mse')),
+                         qfmt(p['rel'], ref_err(r, c.key)), f"{p['time']:.3f}"] + rays_cells(c.key, p['spp']))
         L += [table(['contestant', 'spp', 'MSE', 'relMSE', 'time (s)', 'rays (M)', 'zero-contribution rays (M)',
                      'zero (%)'], rows), '']
         et = r['equal_time']
@@ -344,15 +397,15 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
         rows = []
         for c in contestants:
             p = et['points'][c.key]
-            rows.append([names[c.key], p['spp'], f"{p['time']:.3f}", qfmt(p['mse'], ref['expected_mse']),
-                         qfmt(p['rel'], ref['expected_rel']), fmt(p['rel_se'])] + rays_cells(c.key, p['spp']) +
-                        [ratio_cell(et['points'], c.key, ref['expected_rel'])[0]])
+            rows.append([names[c.key], p['spp'], f"{p['time']:.3f}", qfmt(p['mse'], ref_err(r, c.key, 'mse')),
+                         qfmt(p['rel'], ref_err(r, c.key)), fmt(p['rel_se'])] + rays_cells(c.key, p['spp']) +
+                        [ratio_cell(r, c.key)[0]])
         L += [table(['contestant', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.', 'rays (M)',
                      'zero-contribution rays (M)', 'zero (%)', 'relMSE / path'], rows), '']
         # compile
         L += ['### Compile time (apart from render time)', '']
         rows = []
-        for c in contestants:
+        for c in jit:
             recs = r['compile'][c.key]
             first = r['sweep'][c.key][0]
             rows.append([names[c.key], len(recs), sum(x['kernels'] for x in recs),
@@ -360,7 +413,7 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
                          f"{sum(x['codegen_s'] for x in recs):.3f}", f"{sum(x['backend_s'] for x in recs):.3f}",
                          f"{first['warmup_s']:.3f}", f"{first['time']:.3f}"])
         L += [table(['contestant', 'warm-up renders', 'kernels launched', 'compiled', 'loaded from disk cache',
-                     'codegen (s)', 'LLVM backend (s)', f"first render at {r['sweep'][contestants[0].key][0]['spp']} spp (s)",
+                     'codegen (s)', 'LLVM backend (s)', f"first render at {r['sweep'][jit[0].key][0]['spp']} spp (s)",
                      'same, warm (s)'], rows), '']
         plot_crops(r, images[key], contestants, fig_dir / f'{key}-crops.png')
         L += [f"![crops]({rel(fig_dir / f'{key}-crops.png')})", '']
@@ -394,9 +447,18 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
           f'zero-contribution one). Counted at {settings.count_spp} spp and scaled to each table\'s spp.',
           '- **Crops.** The last timed render of each contestant at the equal-time budget, same exposure as the '
           'reference (its 98th percentile maps to white), sRGB.',
+          *(["- **Mitsuba 0.6.** Built from its public repository by `benchmarks/mitsuba06.py build` (Python 3 SCons, "
+          "OpenEXR 3, GLEW without MX, Boost 1.74, and a `seed` parameter for its `independent` sampler, whose "
+          "fixed seed would otherwise make repeated renders identical draws); scenes converted by "
+          "`benchmarks/mitsuba06.py` (camelCase parameters, float32 OpenEXR without banner, `maxDepth` = "
+          "`max_depth`, `rrDepth` 5). Each render is a `mitsuba` process on all cores; its time is the \"Render "
+          "time\" it logs. Its errors are measured against its own `bdpt` reference, its ratios divided by "
+          "Mitsuba 3 `path`'s error against the Mitsuba 3 reference. It counts no rays ('–' in the tables)."]
+            if used06 else []),
           '']
     L += [f"Raw figures: [`{rel(fig_dir / 'results.json')}`]({rel(fig_dir / 'results.json')}).", '']
     out_md.write_text('\n'.join(L))
     with open(fig_dir / 'results.json', 'w') as f:
         json.dump(finite_json({'settings': settings.__dict__, 'machine': info, 'command': command,
-                               'elapsed_s': elapsed, 'scenes': results}), f, indent=1, allow_nan=False)
+                               'elapsed_s': elapsed, 'mitsuba06': mitsuba06, 'scenes': results}),
+                  f, indent=1, allow_nan=False)

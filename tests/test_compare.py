@@ -1,7 +1,9 @@
 """The comparison benchmark (`benchmarks/compare.py`): its quick mode on a tiny configuration writes
-the report, its tables and its plots, with every figure finite; the ray-count replica of Mitsuba's
-`path` agrees with bdpt's own counters where both trace the same camera subpaths; the caustic
-close-up keeps the Figure 7 scene's content."""
+the report, its tables and its plots, with every figure finite, and says that Mitsuba 0.6 was absent;
+its realistic mode's settings and the --scene-file option; the Mitsuba 0.6 scene converter, build
+script and contestants (the latter with a stand-in `mitsuba` binary: no Mitsuba 0.6 is built here);
+the ray-count replica of Mitsuba's `path` agrees with bdpt's own counters where both trace the same
+camera subpaths; the caustic close-up keeps the Figure 7 scene's content."""
 
 import json
 import math
@@ -12,9 +14,13 @@ import sys
 import xml.etree.ElementTree as ET
 
 import mitsuba as mi
+import pytest
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(REPO, 'scenes')
+BENCH = os.path.join(REPO, 'benchmarks')
+VEACH_BIDIR = '/work/shared/scenes/bitterli/veach-bidir/scene.xml'     # a user's scene, where present
+sys.path.insert(0, BENCH)
 CONTESTANT_LABELS = ('bdpt power', 'bdpt balance', 'bdpt uniform', 'bdpt pt', 'bdpt lt', 'Mitsuba path',
                      'Mitsuba ptracer')
 TEXT_COLUMNS = {'contestant', 'point', 'scene'}
@@ -60,10 +66,13 @@ def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
            '--probe-spp', '1', '--budgets', '0.03', '--repeats', '1', '--ref-spp', '8', '--ref-batches', '2',
            '--pilot-spp', '2', '--pilot-batches', '2', '--count-spp', '1', '--scenes', ','.join(scenes),
            '--out', str(out), '--fig-dir', str(figs), '--cache-dir', str(cache)]
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    env = {k: v for k, v in os.environ.items() if k != 'MITSUBA06_DIST'}      # no Mitsuba 0.6 given
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = out.read_text()
     assert '**quick mode**' in text and 'Mitsuba 3.9.1' in text and 'cores' in text
+    assert '- Mitsuba 0.6: **absent**: no Mitsuba 0.6 binary given' in text
+    assert 'mitsuba06' not in markdown_tables(text)[0][0][2:]
 
     # every plot the report links is there and is a PNG; one error plot and one crop sheet per scene
     links = re.findall(r'!\[[^\]]*\]\(([^)]+)\)', text)
@@ -149,3 +158,212 @@ def test_caustic_closeup_is_the_figure7_scene():
     assert a == b
     sensors = [ET.parse(os.path.join(SCENES, f)).getroot().find('sensor') for f in ('sun-room.xml', 'sun-room-caustic.xml')]
     assert ET.tostring(sensors[0]) != ET.tostring(sensors[1])
+
+
+# ------------------------------------------------------------------------------------------ realistic mode
+
+def test_realistic_mode_settings_and_scene_file():
+    import compare
+    args, s, scenes = compare.parse_args(['--realistic', '--scene-file', f'mine={SCENES}/caustic.xml,max_depth=5'])
+    assert s.mode == 'realistic' and s.res >= 256
+    assert s.budgets[0] == 1 and s.budgets[-1] >= 60 and list(s.budgets) == sorted(s.budgets)
+    assert {'bdpt', 'path', 'mitsuba06-bdpt', 'mitsuba06-path'} <= set(s.contestants)
+    assert s.ref_spp * s.ref_batches >= 16384 and s.ref06_spp * s.ref06_batches >= 1024
+    import compare_lib as lib
+    assert [sc.key for sc in scenes] == [sc.key for sc in lib.SCENES] + ['mine']
+    mine = scenes[-1]
+    assert mine.user and mine.max_depth == 5 and mine.path == mine.path.resolve() and mine.path.name == 'caustic.xml'
+
+    # overrides, a scene selection, the references' sizes
+    _, s, scenes = compare.parse_args(['--realistic', '--scenes', 'fig6', '--scene-file', f'b={SCENES}/caustic.xml',
+                                       '--ref-spp', '64', '--ref06-spp', '16', '--ref06-batches', '4',
+                                       '--contestants', 'bdpt,path,mitsuba06-bdpt'])
+    assert [sc.key for sc in scenes] == ['fig6', 'b'] and scenes[1].max_depth == 8     # the file's default
+    assert (s.ref_spp, s.ref06_spp, s.ref06_batches) == (64, 16, 4)
+    assert s.contestants == ('bdpt', 'path', 'mitsuba06-bdpt')
+    for bad in (['--scene-file', f'x={SCENES}/nothing.xml'], ['--scene-file', f'x={SCENES}/caustic.xml,depth=3'],
+                ['--scene-file', f'fig6={SCENES}/caustic.xml'], ['--contestants', 'bdpt,ptracer']):
+        with pytest.raises(SystemExit):
+            compare.parse_args(['--realistic'] + bad)
+
+
+@pytest.mark.skipif(not os.path.exists(VEACH_BIDIR), reason='no copy of Veach\'s bidirectional room here')
+def test_veach_bidir_as_a_scene_file():
+    """Bitterli's Veach room takes resx/resy, not res: loaded at the mode's resolution all the same."""
+    import compare
+    import compare_lib as lib
+    _, s, scenes = compare.parse_args(['--realistic', '--scenes', '', '--scene-file', f'veach-bidir={VEACH_BIDIR}'])
+    assert [sc.key for sc in scenes] == ['veach-bidir'] and scenes[0].max_depth == 7
+    scene = lib.load_scene(scenes[0], 8)
+    assert list(scene.sensors()[0].film().crop_size()) == [8, 8]
+
+
+# ------------------------------------------------------------------------------------------ Mitsuba 0.6
+
+def names_of(root):
+    return [e.get('name') for e in root.iter() if e.get('name') and e.tag != 'default']
+
+
+def test_mitsuba06_converter_renames_parameters(tmp_path):
+    import mitsuba06
+    dst = tmp_path / 'fig6.xml'
+    mitsuba06.convert_file(os.path.join(SCENES, 'paper-fig6.xml'), dst, {'res': 32})
+    root = ET.parse(dst).getroot()
+    assert root.get('version') == '0.6.0'
+    names = names_of(root)
+    for new in ('toWorld', 'fovAxis', 'intIOR', 'extIOR', 'diffuseReflectance', 'pixelFormat', 'sampleCount',
+                'maxDepth', 'rrDepth', 'componentFormat', 'banner', 'alpha', 'distribution'):
+        assert new in names, new
+    assert not [n for n in names if '_' in n], names
+    film = root.find('sensor/film')
+    assert film.find("integer[@name='width']").get('value') == '32'
+    assert film.find("boolean[@name='banner']").get('value') == 'false'
+    assert film.find("string[@name='componentFormat']").get('value') == 'float32'
+    sampler = root.find('sensor/sampler')
+    assert sampler.get('type') == 'independent'
+    assert {e.get('name'): e.get('value') for e in sampler} == {'sampleCount': '$spp', 'seed': '$seed'}
+    integ = root.find('integrator')
+    assert integ.get('type') == '$integrator'
+    assert {e.get('name'): e.get('value') for e in integ} == {'maxDepth': '8', 'rrDepth': '5'}
+    # Mitsuba 3's conductor without a material is a mirror; 0.6's default would be copper
+    mirror = root.find("shape[@id='mirror_sphere']/bsdf")
+    assert mirror.find("string[@name='material']").get('value') == 'none'
+    # the checkerboard's to_uv scale becomes uscale/vscale
+    tex = root.find("shape[@id='textured_sphere']/bsdf/texture")
+    assert float(tex.find("float[@name='uscale']").get('value')) == 8.0
+    assert float(tex.find("float[@name='vscale']").get('value')) == 4.0
+    assert '$res' not in dst.read_text() and '$max_depth' not in dst.read_text()
+
+    # every scene of the repository converts; names of more plugins
+    for f in sorted(os.listdir(SCENES)):
+        if f.endswith('.xml'):
+            mitsuba06.convert_file(os.path.join(SCENES, f), tmp_path / f, {'res': 16})
+            names = names_of(ET.parse(tmp_path / f).getroot())
+            assert not [n for n in names if '_' in n], (f, names)
+    lights = names_of(ET.parse(tmp_path / 'all-lights.xml').getroot())
+    assert {'cutoffAngle', 'beamWidth', 'irradiance', 'intensity', 'position', 'direction'} <= set(lights)
+    with open(tmp_path / 'all-lights.xml') as fh:
+        assert os.path.join(SCENES, 'textures', 'sky.exr') in fh.read()     # relative file names made absolute
+
+    # what 0.6 does not have is refused
+    bad = tmp_path / 'bad.xml'
+    bad.write_text('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm"/></sensor>'
+                   '<shape type="sphere"><bsdf type="principled"/></shape></scene>')
+    with pytest.raises(mitsuba06.Mitsuba06Error, match='principled'):
+        mitsuba06.convert_file(bad, tmp_path / 'bad06.xml')
+
+
+@pytest.mark.skipif(not os.path.exists(VEACH_BIDIR), reason='no copy of Veach\'s bidirectional room here')
+def test_mitsuba06_converter_on_veach_bidir(tmp_path):
+    import mitsuba06
+    dst = tmp_path / 'veach06.xml'
+    mitsuba06.convert_file(VEACH_BIDIR, dst, {'resx': 64, 'resy': 64}, max_depth=7)
+    root = ET.parse(dst).getroot()
+    names = names_of(root)
+    assert {'faceNormals', 'specularReflectance', 'eta', 'k', 'alpha', 'distribution', 'intIOR', 'extIOR'} <= set(names)
+    assert not [n for n in names if '_' in n]
+    files = [e.get('value') for e in root.iter('string') if e.get('name') == 'filename']
+    assert files and all(os.path.isabs(f) and os.path.exists(f) for f in files)
+    film = root.find('sensor/film')
+    assert (film.find("integer[@name='width']").get('value'), film.find("integer[@name='height']").get('value')) == \
+        ('64', '64')
+
+
+def test_mitsuba06_absent_is_reported_not_fatal(monkeypatch):
+    import compare_report as report
+    import mitsuba06
+    monkeypatch.delenv(mitsuba06.ENV_VAR, raising=False)
+    m06, how = mitsuba06.find(None)
+    assert m06 is None and '--mitsuba06' in how and mitsuba06.ENV_VAR in how
+    line = report.mitsuba06_line({'wanted': ['mitsuba06 bdpt', 'mitsuba06 path'], 'used': False, 'how': how})
+    assert line.startswith('- Mitsuba 0.6: **absent**') and 'mitsuba06 bdpt' in line
+    # a `mitsuba` that is not 0.6 (Mitsuba 3's command has that name) is refused, with the reason
+    m06, how = mitsuba06.find(os.path.dirname(sys.executable))
+    assert m06 is None and ('not Mitsuba 0.6' in how or 'no executable' in how)
+
+
+def test_mitsuba06_build_script_says_what_it_needs(tmp_path, capsys):
+    import mitsuba06
+    assert mitsuba06.main(['build', '--source', str(tmp_path / 'nothing')]) == 1
+    err = capsys.readouterr().err
+    assert 'no such folder' in err and 'git clone https://github.com/mitsuba-renderer/mitsuba' in err
+    assert mitsuba06.main(['build', '--source', str(tmp_path)]) == 1
+    assert 'not a clone' in capsys.readouterr().err
+    # the SConscripts' Python 2, in Python 3 form
+    py2 = ("if env.has_key('X'):\n        print 'a' + \\\n            'b'\nelse:\n    print MTS_VERSION\n"
+           "try:\n    pass\nexcept OSError, e:\n    pass\n")
+    py3 = mitsuba06.python3_sconscript(py2)
+    compile(py3, 'SConscript', 'exec')
+    assert "('X') in env" in py3 and "print('a' + \\\n            'b')" in py3 and 'print(MTS_VERSION)' in py3
+    assert 'except OSError as e:' in py3 and mitsuba06.python3_sconscript(py3) == py3
+
+
+FAKE_MITSUBA06 = '''#!{python}
+# A stand-in for Mitsuba 0.6's `mitsuba` command (none is built here): its command line and log line,
+# a flat image with noise of 1/sqrt(spp) drawn from the seed, and a render time proportional to spp.
+import os, re, sys
+args = sys.argv[1:]
+if '-h' in args:
+    print('Mitsuba version 0.6.0 (stand-in for tests)')
+    sys.exit(0)
+import numpy as np
+import mitsuba as mi
+d = dict(a[2:].split('=', 1) for a in args if a.startswith('-D'))
+text = open(args[-1]).read()
+if os.environ.get('FAKE_UNPATCHED'):
+    print('WARN  main  [xml] Unqueried attribute "seed" in element "sampler"')
+w = int(re.search(r'name="width" value="(\\d+)"', text).group(1))
+h = int(re.search(r'name="height" value="(\\d+)"', text).group(1))
+spp = int(d['spp'])
+noise = 0.3 if d['integrator'] == 'bdpt' else 0.6
+img = 0.5 + noise / spp ** 0.5 * np.random.default_rng(int(d['seed'])).standard_normal((h, w, 3))
+mi.Bitmap(img.astype(np.float32)).write(args[args.index('-o') + 1])
+print('INFO  main  [RenderJob] Render time: %.4fs' % (1e-4 * spp))
+'''
+
+
+def test_mitsuba06_contestants_join_the_tables(tmp_path, monkeypatch):
+    """With a (stand-in) Mitsuba 0.6, "mitsuba06 bdpt" and "mitsuba06 path" are in every table and plot,
+    measured against their own reference; without the seed edit the binary is refused."""
+    dist = tmp_path / 'dist'
+    dist.mkdir()
+    fake = dist / 'mitsuba'
+    fake.write_text(FAKE_MITSUBA06.replace('{python}', sys.executable))
+    fake.chmod(0o755)
+    import mitsuba06
+    with monkeypatch.context() as mp:
+        mp.setenv('FAKE_UNPATCHED', '1')
+        m06, how = mitsuba06.find(str(dist))
+    assert m06 is None and 'seed' in how
+
+    out, figs, cache = tmp_path / 'results.md', tmp_path / 'results', tmp_path / 'cache'
+    cmd = [sys.executable, os.path.join(BENCH, 'compare.py'), '--quick', '--res', '8', '--probe-spp', '1',
+           '--budgets', '0.03', '--repeats', '1', '--ref-spp', '4', '--ref-batches', '2', '--pilot-spp', '2',
+           '--pilot-batches', '2', '--count-spp', '1', '--ref06-spp', '4', '--ref06-batches', '2', '--scenes',
+           'caustic', '--contestants', 'bdpt,path,mitsuba06-bdpt,mitsuba06-path', '--mitsuba06', str(dist),
+           '--out', str(out), '--fig-dir', str(figs), '--cache-dir', str(cache)]
+    env = {k: v for k, v in os.environ.items() if k != 'FAKE_UNPATCHED'}
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = out.read_text()
+    assert '**absent**' not in text and f'- Mitsuba 0.6: {fake}' in text
+    tables = markdown_tables(text)
+    assert tables[0][0][2:] == ['bdpt power', 'Mitsuba path', 'mitsuba06 bdpt', 'mitsuba06 path']
+    compile_rows = [rows for header, rows in tables if 'kernels compiled' in header][0]
+    assert [r[0] for r in compile_rows] == ['bdpt power', 'Mitsuba path']      # 0.6 compiles nothing
+    equal_time = [rows for header, rows in tables if 'relMSE / path' in header][0]
+    assert [r[0] for r in equal_time][2:] == ['mitsuba06 bdpt', 'mitsuba06 path']
+    assert all(r[6] == '–' for r in equal_time[2:])                        # no ray counts
+    data = json.loads((figs / 'results.json').read_text(), parse_constant=reject_constant)
+    assert data['mitsuba06']['used'] and data['mitsuba06']['version'].startswith('0.6')
+    scene = data['scenes'][0]
+    assert scene['reference06']['spp'] == 8 and scene['reference06']['expected_rel'] > 0
+    assert scene['reference_of']['mitsuba06-path'] == 'reference06' and scene['reference_of']['path'] == 'reference'
+    for key in ('mitsuba06-bdpt', 'mitsuba06-path'):
+        pts = scene['sweep'][key]
+        assert all(p['time'] == pytest.approx(1e-4 * p['spp'], abs=1e-4) for p in pts), pts
+        assert all(p['rel'] > 0 for p in pts)
+    # the stand-in's bdpt has half its path's noise: a quarter of its error at equal samples
+    es = scene['equal_samples']['points']
+    assert es['mitsuba06-bdpt']['rel'] < es['mitsuba06-path']['rel']
+    assert (cache / 'mitsuba06' / 'caustic-8.xml').exists()
