@@ -37,6 +37,28 @@ class CameraTracer:
         ray, ray_w = c.camera.sample_ray(c.time, u_wl, adjusted, sampler.next_2d())
         return pos + c.camera.crop_offset, ray, mi.Spectrum(ray_w)
 
+    def aov_values(self, si, ray):
+        """The AOV channels (parameter ``aovs``) of each camera ray's first hit, as Mitsuba's aov
+        integrator computes them; 0 where the ray leaves the scene."""
+        valid = si.is_valid()
+        out = []
+        for _, kind in self.ctx.aovs:
+            if kind == 'depth':
+                vals = [si.t]
+            elif kind == 'position':
+                vals = [si.p.x, si.p.y, si.p.z]
+            elif kind == 'uv':
+                vals = [si.uv.x, si.uv.y]
+            elif kind == 'geo_normal':
+                vals = [si.n.x, si.n.y, si.n.z]
+            elif kind == 'sh_normal':
+                vals = [si.sh_frame.n.x, si.sh_frame.n.y, si.sh_frame.n.z]
+            else:                                     # albedo
+                a = si.bsdf(ray).eval_diffuse_reflectance(si, valid)
+                vals = [a[i if dr.size_v(a) == 3 else 0] for i in range(3)]
+            out += [dr.select(valid, v, 0.0) for v in vals]
+        return out
+
     # ------------------------------------------------------------------ strategies
     def strategy_s0(self, si, ray, prev, depth, beta, d_vcm, d_vc, active, film_pos=None):
         """s=0: the camera subpath hits an emitter at ``si``."""
@@ -210,6 +232,7 @@ class CameraTracer:
                                    mi.Float(0), mi.Float(0), ~si.is_valid() & (max_edges >= 1), film_pos)
         active = si.is_valid() & (max_edges >= 1)
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
+        aov_values = self.aov_values(si, ray) if c.aovs else ()
         pdf_cam_w = c.camera.pdf_w(ray.d)
         d_vcm, d_vc = mis.camera_init(pdf_cam_w)
         # the first edge's length as every other strategy measures it (from the lens point)
@@ -249,4 +272,4 @@ class CameraTracer:
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
 
-        film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths)
+        film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths, aov_values)

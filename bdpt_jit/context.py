@@ -14,7 +14,7 @@ from .connect import DiffuseTable
 from .endpoints import EmitterTable
 from .film import FilmAccumulator, StrategyLayers
 from .mis import MIS
-from .params import ParameterError
+from .params import ParameterError, aov_channel_names, parse_aovs
 from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .scene_check import VertexNeeds, has_instances, scene_has_delta_bsdf, scene_perturbs_normals
@@ -63,6 +63,7 @@ class Context:
     layers             film.StrategyLayers, or None (parameter strategy_images)
     stats              stats.RayStats, or None (parameter statistics)
     ad                 a differentiable pass (gradients.py): detached sampling, values with derivatives
+    aovs, aov_names    the AOVs asked for (params.parse_aovs) and their film channels
     """
 
     def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=False):
@@ -93,6 +94,11 @@ class Context:
         # opaque: literals would be baked into the kernels and recompile them for every spp
         self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))
+        self.aovs = parse_aovs(settings.get('aovs', ''))
+        self.aov_names = aov_channel_names(self.aovs)
+        if self.aovs and mi.is_spectral:
+            raise ParameterError(f"bdpt: parameter 'aovs' needs an RGB or monochrome variant, not "
+                                 f"'{mi.variant()}'")
         if settings['strategy_images'] and not mi.is_rgb:
             raise ParameterError(f"bdpt: parameter 'strategy_images' needs an RGB variant (the layers are "
                                  f"RGB images), not '{mi.variant()}'")

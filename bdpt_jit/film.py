@@ -10,14 +10,21 @@ import mitsuba as mi
 
 
 class FilmAccumulator:
-    def __init__(self, film: mi.Film):
+    """Channels of both blocks, in Mitsuba's order: colour (3), alpha if the film has it, the
+    filter weight, then the AOVs (parameter ``aovs``: camera samples only)."""
+
+    def __init__(self, film: mi.Film, aov_names=()):
         self.film = film
-        film.prepare([])
+        self.aov_names = list(aov_names)
+        film.prepare(self.aov_names)
         self.cam = film.create_block()
         self.lt = film.create_block(normalize=True)
         self.lt.set_coalesce(False)
-        self.n_channels = self.cam.channel_count()          # rgb(+alpha) + weight
-        self.has_alpha = self.n_channels == 5
+        self.n_channels = self.cam.channel_count()
+        self.n_aov = len(self.aov_names)
+        self.has_alpha = self.n_channels - self.n_aov == 5
+        self.weight_index = 4 if self.has_alpha else 3
+        self.aov_start = self.weight_index + 1
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
 
     @staticmethod
@@ -26,28 +33,48 @@ class FilmAccumulator:
         sensor's importance is normalised over the crop: each splat carries 1/spp."""
         return 1.0 / spp
 
-    def put_camera(self, pos, value, alpha, active, wavelengths):
+    def put_camera(self, pos, value, alpha, active, wavelengths, aov_values=()):
         """A camera sample (weight 1 in the filter's normalisation). ``value``: a spectrum at
-        ``wavelengths`` (spectral variants: converted by the block, as Mitsuba's path does)."""
-        self.cam.put(pos, wavelengths, value, alpha, 1.0, active)
+        ``wavelengths`` (spectral variants: converted by the block, as Mitsuba's path does);
+        ``aov_values``: one Float per AOV channel (RGB and monochrome variants)."""
+        if not self.n_aov:
+            self.cam.put(pos, wavelengths, value, alpha, 1.0, active)
+            return
+        self.cam.put(pos, self._channels(value, alpha, list(aov_values), 1.0), active)
 
     def put_splat(self, uv_in_crop, value, active, wavelengths):
         """A light-image splat: no alpha, no weight (normalised with the film, as ptracer)."""
-        self.lt.put(uv_in_crop + self.crop_offset, wavelengths, value, 0.0, 0.0, active)
+        pos = uv_in_crop + self.crop_offset
+        if not self.n_aov:
+            self.lt.put(pos, wavelengths, value, 0.0, 0.0, active)
+            return
+        zeros = dr.zeros(mi.Float, dr.width(value))
+        self.lt.put(pos, self._channels(value, zeros, [zeros] * self.n_aov, zeros), active)
+
+    def _channels(self, value, alpha, aovs, weight):
+        """The block's channel list (colour: a monochrome value in all three, as the block's
+        spectral put does)."""
+        n = dr.width(value)
+        colour = [value[i if dr.size_v(value) == 3 else 0] for i in range(3)]
+        out = colour + ([alpha] if self.has_alpha else []) + [weight] + aovs
+        return [x if dr.width(x) == n and not isinstance(x, float) else mi.Float(x) + dr.zeros(mi.Float, n)
+                for x in out]
 
     def develop(self, light_scale=1.0) -> mi.TensorXf:
         """Sum of the normalised camera image and the light image, handed to the film so that
         ``film.bitmap()`` and ``mi.render`` both see it. Returns the developed tensor."""
         cam = self.cam.tensor()
         lt = self.lt.tensor()
-        c = self.n_channels
-        w = cam[:, :, c - 1:c]
+        wi = self.weight_index
+        w = cam[:, :, wi:wi + 1]
         inv_w = dr.select(w > 0, 1.0 / dr.select(w > 0, w, 1.0), 0.0)
         rgb = cam[:, :, 0:3] * inv_w + lt[:, :, 0:3] * light_scale
         parts = [rgb]
         if self.has_alpha:
             parts.append(cam[:, :, 3:4] * inv_w)
         parts.append(dr.ones(mi.TensorXf, shape=(rgb.shape[0], rgb.shape[1], 1)))
+        if self.n_aov:
+            parts.append(cam[:, :, self.aov_start:self.aov_start + self.n_aov] * inv_w)
         total = dr.concat(parts, axis=2)
         block = mi.ImageBlock(total, offset=self.film.crop_offset(), rfilter=None)
         self.film.clear()
@@ -64,12 +91,14 @@ class FilmAccumulator:
         spread of the passes' weight sums."""
         cam = self.cam.tensor()
         lt = self.lt.tensor()
-        c = self.n_channels
-        w = dr.detach(cam[:, :, c - 1:c])
+        wi = self.weight_index
+        w = dr.detach(cam[:, :, wi:wi + 1])
         inv_w = dr.select(w > 0, camera_share / dr.select(w > 0, w, 1.0), 0.0)
         parts = [cam[:, :, 0:3] * inv_w + lt[:, :, 0:3]]
         if self.has_alpha:
             parts.append(dr.detach(cam[:, :, 3:4]) * inv_w)
+        if self.n_aov:
+            parts.append(dr.detach(cam[:, :, self.aov_start:self.aov_start + self.n_aov]) * inv_w)
         return dr.concat(parts, axis=2) if len(parts) > 1 else parts[0]
 
 

@@ -43,6 +43,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.mis_kind = s['mis']
         self.hide_emitters = s['hide_emitters']
         self.samples_per_pass = s['samples_per_pass']
+        self.aov_channels = P.aov_channel_names(P.parse_aovs(s['aovs']))   # the film's extra channels
         self.strategy_images = None     # after a render with strategy_images: the layers (dict)
         self.hooks = RenderHooks()      # progress and stopping between passes (passes.RenderHooks)
         self.last_render_info = {}
@@ -69,7 +70,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if spp == 0:
             spp = sensor.sampler().sample_count()
         ctx = self.make_context(scene, sensor, spp)
-        acc = FilmAccumulator(sensor.film())
+        acc = FilmAccumulator(sensor.film(), ctx.aov_names)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
         t0 = _time.perf_counter()
@@ -198,19 +199,24 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                     raise NotImplementedError(
                         "bdpt: derivatives need passes of whole images: raise samples_per_pass to at "
                         f"least the crop's {n_pixels} pixels")
-                acc = FilmAccumulator(sensor.film())
+                acc = FilmAccumulator(sensor.film(), ctx.aov_names)
                 self.render_pass(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
                 yield acc.pass_image(spp_pass / spp)
+
+    def aov_names(self):
+        """The AOV channels this integrator adds to the film (parameter ``aovs``), as Mitsuba's
+        integrators report theirs."""
+        return list(self.aov_channels)
 
     def sample(self, *args, **kwargs):
         # Mitsuba calls a nested integrator's sample() (the aov integrator wrapping bdpt does)
         raise NotImplementedError(
             "bdpt cannot run inside another integrator (such as Mitsuba's 'aov', which calls the nested "
             "integrator's per-sample sample()): bdpt renders whole images, its light-tracing strategies "
-            "splat into other pixels and are added as a light image. Render the AOV channels with the aov "
-            "integrator alone (e.g. <integrator type=\"aov\"><string name=\"aovs\" value=\"dd:depth,nn:sh_normal\"/>"
-            "</integrator>, or mi.load_dict({'type': 'aov', 'aovs': 'dd:depth,nn:sh_normal'})) and the image "
-            "with bdpt on its own, then stack the channels.")
+            "splat into other pixels and are added as a light image. bdpt renders the same AOV channels "
+            "itself: give it the parameter aovs (e.g. <string name=\"aovs\" value=\"dd:depth,nn:sh_normal\"/> "
+            "inside <integrator type=\"bdpt\">, or mi.load_dict({'type': 'bdpt', 'aovs': 'dd:depth,nn:sh_normal'})); "
+            "or: Render the AOV channels with the aov integrator alone and the image with bdpt.")
 
     def to_string(self):
         return (f"BDPTIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "

@@ -57,6 +57,10 @@ PARAMS = (
     Param('statistics', bool, False,
           'Count rays traced and zero-contribution rays (extension rays that leave the scene, '
           'blocked shadow rays), as the paper\'s Table 1; reported in `integrator.last_render_info`.'),
+    Param('aovs', str, '',
+          "Extra channels from each camera ray's first hit, named as Mitsuba's `aov` integrator names "
+          "them: `name:type` pairs separated by commas, types depth, position, uv, geo_normal, "
+          "sh_normal, albedo (e.g. `dd:depth,nn:sh_normal,ab:albedo`; RGB and monochrome variants)."),
     Param('samples_per_pass', int, None,
           'Samples traced per kernel launch; bounds memory (light-vertex storage grows with it). '
           "Automatic: as many as fit a sixth of the machine's memory (on a GPU half its free memory), "
@@ -93,6 +97,8 @@ def check_value(p: Param, value):
         if p.choices and value not in p.choices:
             raise ParameterError(
                 f"bdpt: parameter '{p.name}' must be one of {', '.join(p.choices)}; got {value!r}")
+        if p.name == 'aovs':
+            parse_aovs(value)
     return value
 
 
@@ -115,6 +121,29 @@ def parse_properties(props) -> dict:
     for p in PARAMS:
         out.setdefault(p.name, p.default)
     return out
+
+
+AOV_TYPES = {'depth': 'T', 'position': 'XYZ', 'uv': 'UV', 'geo_normal': 'XYZ', 'sh_normal': 'XYZ',
+             'albedo': 'RGB'}
+
+
+def parse_aovs(text: str):
+    """``'dd:depth,nn:sh_normal'`` -> [('dd', 'depth'), ('nn', 'sh_normal')], refusing bad entries
+    with an error naming the parameter and the allowed types."""
+    out = []
+    for item in [x.strip() for x in text.split(',') if x.strip()]:
+        name, sep, kind = item.partition(':')
+        if not sep or not name or kind not in AOV_TYPES:
+            raise ParameterError(
+                f"bdpt: parameter 'aovs' entry {item!r} must be name:type with a type among "
+                f"{', '.join(AOV_TYPES)}")
+        out.append((name, kind))
+    return out
+
+
+def aov_channel_names(aovs):
+    """Film channel names of parsed AOVs, as Mitsuba's aov integrator names them (``dd.T``)."""
+    return [f'{name}.{c}' for name, kind in aovs for c in AOV_TYPES[kind]]
 
 
 def markdown_table() -> str:

@@ -378,3 +378,13 @@ def test_other_variants_write_their_channels(tmp_path, variant, channels):
     assert sorted(ch) == channels
     assert all(np.isfinite(ch[k]).all() and ch[k].max() > 0 for k in channels)
     assert (tmp_path / 'v.png').exists()
+
+
+def test_aovs_are_written_as_named_channels(tmp_path):
+    out = tmp_path / 'a.exr'
+    r = run_cli(CORNELL, '-o', str(out), '--spp', '2', '-D', 'res=8', '--aovs', 'dd:depth,nn:sh_normal', '-q')
+    assert r.returncode == 0, r.stderr
+    f = OpenEXR.File(str(out), separate_channels=True)
+    ch = {name: c.pixels for name, c in f.channels().items()}
+    assert {'R', 'G', 'B', 'dd.T', 'nn.X', 'nn.Y', 'nn.Z'} <= set(ch)
+    assert ch['dd.T'].max() > 1.0 and abs(ch['nn.Z']).max() <= 1.0 + 1e-5

@@ -52,14 +52,16 @@ def atomic_write(path, write_fn):
         raise
 
 
-def exr_channels(rgb, layers=None):
+def exr_channels(rgb, layers=None, aov_names=()):
     """Channel dict for OpenEXR: the image as R, G, B (Y for a monochrome variant's one
-    channel); each strategy layer as ``<name>.weighted.R/G/B`` and ``<name>.unweighted.R/G/B``."""
+    channel), then its AOV channels under their names (``dd.T``, ...); each strategy layer as
+    ``<name>.weighted.R/G/B`` and ``<name>.unweighted.R/G/B``."""
     import numpy as np
     ch = {}
     rgb = np.asarray(rgb, dtype=np.float32)
-    names = 'Y' if rgb.shape[2] == 1 else 'RGB'
-    for c, cname in enumerate(names):
+    n_colour = rgb.shape[2] - len(aov_names)
+    names = ['Y'] if n_colour == 1 else ['R', 'G', 'B']
+    for c, cname in enumerate(list(names) + list(aov_names)):
         ch[cname] = np.ascontiguousarray(rgb[:, :, c])
     for name, kinds in (layers or {}).items():
         for kind in ('weighted', 'unweighted'):
@@ -69,12 +71,12 @@ def exr_channels(rgb, layers=None):
     return ch
 
 
-def write_exr(path, rgb, header_extra, layers=None):
+def write_exr(path, rgb, header_extra, layers=None, aov_names=()):
     """ZIP-compressed scanline EXR; ``header_extra`` values are written as strings."""
     import OpenEXR
     header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
     header.update({k: str(v) for k, v in header_extra.items()})
-    channels = exr_channels(rgb, layers)
+    channels = exr_channels(rgb, layers, aov_names)
     atomic_write(path, lambda tmp: OpenEXR.File(header, channels).write(tmp))
 
 

@@ -137,12 +137,17 @@ def render(args, scene, integ, is_bdpt, guard):
 
 
 def _mi_render(scene, integ, spp, seed):
-    """mi.render as an HxWx3 array; a Ctrl-C that arrives wrapped becomes a KeyboardInterrupt."""
+    """mi.render as an HxWxC array: colour (3, or 1 in a monochrome variant), then bdpt's AOV
+    channels if it has any (alpha dropped); a Ctrl-C that arrives wrapped becomes a
+    KeyboardInterrupt."""
     import mitsuba as mi
     import numpy as np
     from ..passes import caused_by_interrupt
     try:
-        return np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed))[:, :, :3]
+        arr = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed))
+        n_aov = len(getattr(integ, 'aov_channels', ()))
+        colour = arr[:, :, :arr.shape[2] - n_aov][:, :, :3]
+        return np.concatenate([colour, arr[:, :, arr.shape[2] - n_aov:]], axis=2) if n_aov else colour
     except Exception as e:
         if caused_by_interrupt(e):
             raise KeyboardInterrupt from None

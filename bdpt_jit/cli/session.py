@@ -48,8 +48,9 @@ def cmd_render(args, guard):
     res = render(args, scene, integ, is_bdpt, guard)
     img, layers = res.mean()
     stats = statistics(args, res, settings, variant, args.scene, defines, time.perf_counter() - t_wall)
-    write_exr(out, img, header(stats), layers)
-    write_png(png, img)
+    aov_names = list(getattr(integ, 'aov_channels', ()))
+    write_exr(out, img, header(stats), layers, aov_names)
+    write_png(png, img[:, :, :img.shape[2] - len(aov_names)])
     if not args.quiet:
         print_summary(stats, res, out, png)
         sys.stdout.flush()
