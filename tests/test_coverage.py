@@ -121,6 +121,26 @@ def textured_box(texture='bitmap', shape='rectangle'):
     return d
 
 
+def textured_quad_mesh_box(texture='bitmap'):
+    """The Cornell box lit by a textured quad *mesh* in front of the back wall, its uv map
+    one-to-one (scene_check.uv_map_is_one_to_one)."""
+    d = cornell(RES, light=False)
+    V = np.array([[-0.55, -0.45, -0.98], [0.55, -0.45, -0.98], [0.55, 0.65, -0.98], [-0.55, 0.65, -0.98]], np.float32)
+    UV = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
+    props = mi.Properties()
+    props['emitter'] = mi.load_dict({'type': 'area', 'radiance': radiance_texture(texture)})
+    props['bsdf'] = mi.load_dict(diffuse(0.0))
+    mesh = mi.Mesh('lamp_mesh', 4, 2, props=props, has_vertex_normals=False, has_vertex_texcoords=True)
+    p = mi.traverse(mesh)
+    p['vertex_positions'] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
+    p['vertex_texcoords'] = dr.ravel(mi.Point2f(UV[:, 0], UV[:, 1]))
+    p['faces'] = dr.ravel(mi.Vector3u(F[:, 0], F[:, 1], F[:, 2]))
+    p.update()
+    d['lamp'] = mesh
+    return d
+
+
 def window_room(sun_scale=0.2):
     """A closed room [-1, 1]^3 (y up) with a square window in the ceiling, a box on the floor,
     lit by Mitsuba's sunsky (z up in its frame, rotated to y up): the sun falls through the
@@ -222,8 +242,17 @@ def test_textured_area_light(texture, shape, technique, mis, spp):
           {'type': 'bdpt', 'max_depth': 3, 'technique': technique, 'mis': mis}, spp)
 
 
+@pytest.mark.parametrize('technique', ['bdpt', 'lt', 'pt'])
+def test_textured_light_on_a_mesh_with_a_one_to_one_uv_map(technique):
+    """A textured quad mesh (uv map one-to-one): allowed, and against ptracer (Mitsuba samples
+    it through its uv map, as it does rectangles)."""
+    check('textured_quad_mesh', textured_quad_mesh_box, {'type': 'ptracer', 'max_depth': 3}, 1024,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique}, 1024 if technique == 'pt' else 256)
+
+
 @pytest.mark.parametrize('shape', ['cube', 'cylinder'])
 def test_textured_emitter_refused_on_meshes_and_cylinders(shape):
+    """A cube's faces share their uvs (not one-to-one), a cylinder's uv map is not exact."""
     scene = mi.load_dict(textured_box('checker', shape))
     with pytest.raises(UnsupportedSceneError, match=f"textured radiance on the shape .*\\({shape}\\)"):
         check_scene(scene, scene.sensors()[0])
