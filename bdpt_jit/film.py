@@ -94,7 +94,8 @@ class FilmAccumulator:
         wi = self.weight_index
         w = dr.detach(cam[:, :, wi:wi + 1])
         inv_w = dr.select(w > 0, camera_share / dr.select(w > 0, w, 1.0), 0.0)
-        parts = [cam[:, :, 0:3] * inv_w + lt[:, :, 0:3]]
+        n = 1 if mi.is_monochromatic else 3          # film.develop's colour channels (mono: luminance)
+        parts = [cam[:, :, 0:n] * inv_w + lt[:, :, 0:n]]
         if self.has_alpha:
             parts.append(dr.detach(cam[:, :, 3:4]) * inv_w)
         if self.n_aov:

@@ -118,7 +118,7 @@ def ratio(x):
     value is already in it, differentiated (0 derivative where x is 0)."""
     d = dr.detach(x)
     q = dr.select(d != 0, x / dr.select(d != 0, d, 1.0), 0.0)
-    return dr.replace_grad(dr.ones(type(x), dr.width(x)), q)
+    return type(x)(dr.replace_grad(dr.ones(type(x), dr.width(x)), q))   # (keeps mi.Spectrum's type)
 
 
 def edge_ratio(c, camera_side, si, bsdf, si_next, d_escape, u, is_delta, active):
@@ -141,7 +141,7 @@ def edge_ratio(c, camera_side, si, bsdf, si_next, d_escape, u, is_delta, active)
         mode = connect.CTX_RADIANCE if camera_side else connect.CTX_IMPORTANCE
         _, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
         out = dr.select(is_delta, ratio(w_delta), out)
-    return dr.select(active, out, 1.0)
+    return mi.Spectrum(dr.select(active, out, 1.0))
 
 
 def sample_bsdf(c, bsdf, mode, si, u1, u2, active):
@@ -229,4 +229,4 @@ def emission_ratio(c, e, si1, u_dir, time, active):
             si_env.wi, si_env.time = e.d, time                # e.d leaves the environment
             si_env.wavelengths = si1.wavelengths
             value = sel(k.env, emitter.eval(si_env, active & k.env) * cos1, value)
-    return dr.select(active, ratio(value), 1.0)
+    return mi.Spectrum(dr.select(active, ratio(value), 1.0))

@@ -165,7 +165,7 @@ class LightTracer:
             beta = beta * (bsdf_w * corr)         # no delta lobe in the scene: none traced
             pdf_rev_w = reverse_pdf_w(bsdf, CTX_IMPORTANCE, si, bs.wo, active, c.diffuse)
         if c.ad:   # the factor without derivatives: the edge's derivative comes with edge_ratio
-            beta = beta_in * dr.detach(beta * safe_div(1.0, dr.detach(beta_in)))
+            beta = mi.Spectrum(beta_in * dr.detach(beta * safe_div(1.0, dr.detach(beta_in))))
         cos_out = dr.abs(dr.dot(si.n, wo_world))
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)

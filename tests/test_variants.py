@@ -117,3 +117,34 @@ def test_polarized_variants_are_refused_with_the_reason():
             "try:\n    mi.load_dict({'type': 'bdpt'})\nexcept Exception as e:\n    print('REFUSED', e)\n")
     r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
     assert 'REFUSED' in r.stdout and 'polarized' in r.stdout, r.stdout + r.stderr[-2000:]
+
+
+GRAD = r'''
+import sys, numpy as np
+import mitsuba as mi, drjit as dr
+mi.set_variant(sys.argv[1])
+mi.set_log_level(mi.LogLevel.Error)
+import bdpt_jit
+d = mi.cornell_box()
+d['sensor']['film'].update(width=16, height=16, rfilter={'type': 'box'})
+d['light']['emitter']['radiance'] = {'type': 'uniform', 'value': 12.0}   # linear in its value
+scene = mi.load_dict(d)
+params = mi.traverse(scene)
+key = 'light.emitter.radiance.value'
+v = type(params[key])(dr.detach(params[key])); dr.enable_grad(v); params[key] = v; params.update()
+integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4})
+img = mi.render(scene, params, integrator=integ, spp=4, seed=1, seed_grad=2)
+dr.set_grad(v, dr.detach(v)); dr.forward_to(img)
+g = np.array(dr.grad(img)); ref = np.array(mi.render(scene, integrator=integ, spp=4, seed=2))
+print('ERR', np.abs(g - ref).max() / ref.mean(), g.shape == ref.shape)
+'''
+
+
+@pytest.mark.parametrize('variant', ['llvm_ad_mono', 'llvm_ad_spectral'])
+def test_gradients_in_other_variants(variant):
+    """Forward-mode derivative along the light's (uniform, so linear) radiance equals the image
+    in the monochrome and spectral variants (the film's layout and mi.Spectrum types)."""
+    r = subprocess.run([sys.executable, '-c', GRAD, variant], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    line = [x for x in r.stdout.splitlines() if x.startswith('ERR')][-1].split()
+    assert float(line[1]) < 1e-4 and line[2] == 'True', r.stdout
