@@ -98,14 +98,15 @@ class CameraTracer:
             c.layers.add(0, depth + 1, film_pos, beta * le * (w * c.inv_spp), beta * le * c.inv_spp, escaped)
         return dr.select(escaped, beta * le * w, 0.0)
 
-    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None):
+    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None, err=None):
         """s=1: emitter sampling from the camera vertex ``si``."""
         c = self.ctx
         ds, em_w = gradients.sample_direct(c, si, u, active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
-        blocked = c.scene.ray_test(spawn_to_emitter(si.p, si.n, c.offsets.error(si.p, si.shape), ds,
+        err = c.offsets.error(si.p, si.shape) if err is None else err
+        blocked = c.scene.ray_test(spawn_to_emitter(si.p, si.n, err, ds,
                                                     c.emitters.error_at(ds), si.time, c.offsets.far_rel,
                                                     si.wavelengths), active)
         if c.stats is not None:
@@ -157,7 +158,7 @@ class CameraTracer:
         return dr.select(ok, contrib * w, 0.0)
 
     @dr.syntax
-    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None):
+    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None, err=None):
         """Sum of the connections of camera vertex ``si`` to the light subpath of its sample."""
         c = self.ctx
         n_light, record, st_v, slot_of = store.count, store.record, store.v, store.slot   # read before the loop
@@ -165,20 +166,20 @@ class CameraTracer:
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(depth + 1, c.max_depth_edges))
         L = mi.Spectrum(0.0)
         j = mi.UInt32(0)
-        err = c.offsets.error(si.p, si.shape)         # once for all the connections of si
+        err = c.offsets.error(si.p, si.shape) if err is None else err   # once for all connections of si
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.connect_one(record, st_v, slot_of(j, idx), si, bsdf, depth, beta, d_vcm, d_vc,
                                   active, film_pos, level=j, err=err)
             j += 1
         return L
 
-    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err):
         """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
         is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
         u1, u2 = sampler.next_1d(), sampler.next_2d()
         ray, beta, d_vcm, d_vc, active, is_delta = self.scatter(
-            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err)
         si_next = gradients.intersect(c, ray, active)
         if c.ad:
             beta = beta * gradients.edge_ratio(c, True, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
@@ -188,7 +189,7 @@ class CameraTracer:
         dist2 = dr.squared_norm(si_next.p - si.p)
         return ray, si_next, beta, d_vcm, d_vc, active, dist2
 
-    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err):
         """Sample the next direction (lobe and direction samples ``u1``, ``u2``); update
         throughput, MIS quantities and the roulette. Returns the next ray, the updated state
         and the delta mask (None in scenes without delta lobes)."""
@@ -207,7 +208,7 @@ class CameraTracer:
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
                                        bs.pdf, pdf_rev_w, is_delta)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
-        ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo_world, si.time, si.wavelengths)
+        ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)
         return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
 
     # ------------------------------------------------------------------ walk
@@ -243,6 +244,7 @@ class CameraTracer:
 
         while dr.hint(active, label='bdpt_camera_subpath'):
             bsdf = si.bsdf(ray)
+            err = c.offsets.error(si.p, si.shape)     # the vertex's error bound, for all its rays (rays.py)
 
             # ---------------- s = 0: the camera subpath hits an emitter ----------------
             if dr.hint(c.strategies.trace_s0, mode='scalar'):
@@ -253,16 +255,16 @@ class CameraTracer:
 
             # ---------------- s = 1: emitter sampling ----------------
             if dr.hint(c.strategies.trace_s1, mode='scalar'):
-                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos)
+                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos, err)
 
             # ---------------- s >= 2: connect to the light subpath ----------------
             if dr.hint(c.strategies.trace_connect, mode='scalar'):
-                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos)
+                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos, err)
 
             # ---------------- continue the walk ----------------
             prev = mi.Interaction3f(si)
             ray, si, beta, d_vcm, d_vc, active, dist2 = self.advance(
-                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
             if dr.hint(c.strategies.trace_env, mode='scalar'):

@@ -117,7 +117,8 @@ def ratio(x):
     """1 in value, with the derivative of x / detach(x): the factor x of a throughput whose
     value is already in it, differentiated (0 derivative where x is 0)."""
     d = dr.detach(x)
-    q = dr.select(d != 0, x / dr.select(d != 0, d, 1.0), 0.0)
+    ok = (d != 0) & dr.isfinite(d)            # an overflowed factor (vertices ~1e-19 apart): no derivative
+    q = dr.select(ok, x / dr.select(ok, d, 1.0), 0.0)
     return type(x)(dr.replace_grad(dr.ones(type(x), dr.width(x)), q))   # (keeps mi.Spectrum's type)
 
 
@@ -156,15 +157,15 @@ def sample_bsdf(c, bsdf, mode, si, u1, u2, active):
 def sample_direct(c, si, u, active):
     """EmitterTable.sample_direct (s=1). In a differentiable pass the emitter point is a
     material point (Mitsuba's sampling with derivatives), the density detached, and the weight
-    Le / pdf_w = Le |cos_y| / (d^2 pdf_a) takes the derivative of Le |cos_y| / d^2."""
+    Le / pdf_w = Le |cos_y| / (d^2 pdf_a) takes the derivative of Le |cos_y| / d^2 (area
+    emitters; ``eval_direction`` of a point or spot light is already I / d^2, and a directional
+    light's or an environment's value has no distance)."""
     if not c.ad:
         return c.emitters.sample_direct(si, u, active)
     ds, w = c.emitters.sample_direct(si, u, active)
     le = ds.emitter.eval_direction(si, ds, active & (ds.pdf > 0))
     k = c.emitters.kinds(ds.emitter)
-    finite = dr.isfinite(ds.dist)
-    geo = dr.select(finite, safe_div(1.0, dr.square(ds.dist)), 1.0)
-    geo = sel(k.area, geo * dr.abs(dr.dot(ds.n, ds.d)), geo)
+    geo = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist)), mi.Float(1.0))
     ds.pdf = dr.detach(ds.pdf)
     return ds, dr.detach(w) * ratio(le * geo)
 

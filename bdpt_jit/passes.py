@@ -71,13 +71,19 @@ def light_capacity(strategies, max_depth_edges, unbounded):
     return 8 if unbounded else max_depth_edges - 2
 
 
+def _pass_size(spp, n_pixels, bytes_per_sample, samples_per_pass):
+    """(samples per pass from the parameter or the memory budget, spp per pass when a pass
+    holds whole images)."""
+    budget = samples_per_pass or max(memory_budget() // bytes_per_sample, 1)
+    return budget, max(1, min(spp, budget // n_pixels))
+
+
 def plan_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
     """Split spp x pixels samples into passes of whole pixels: yields (spp_in_pass,
     pixel_start, pixel_count). ``samples_per_pass``: the parameter (None: from the memory
     budget)."""
-    budget = samples_per_pass or max(memory_budget() // bytes_per_sample, 1)
+    budget, spp_pass = _pass_size(spp, n_pixels, bytes_per_sample, samples_per_pass)
     if budget >= n_pixels:
-        spp_pass = max(1, min(spp, budget // n_pixels))
         done = 0
         while done < spp:
             k = min(spp_pass, spp - done)
@@ -90,9 +96,10 @@ def plan_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
 
 
 def count_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
-    budget = samples_per_pass or max(memory_budget() // bytes_per_sample, 1)
+    """How many passes plan_passes yields, without walking them (the command's --time renders
+    ask for 2^30 spp)."""
+    budget, spp_pass = _pass_size(spp, n_pixels, bytes_per_sample, samples_per_pass)
     if budget >= n_pixels:
-        spp_pass = max(1, min(spp, budget // n_pixels))
         return -(-spp // spp_pass)
     return spp * -(-n_pixels // budget)
 

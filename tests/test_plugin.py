@@ -179,3 +179,17 @@ def test_bad_aovs_name_the_parameter_and_the_types(value):
     with pytest.raises(Exception) as e:
         mi.load_dict({'type': 'bdpt', 'aovs': value})
     assert "'aovs'" in str(e.value) and 'sh_normal' in str(e.value)
+
+
+@pytest.mark.parametrize('spp,n_pixels,per_pass', [(16, 64, None), (7, 100, 250), (5, 100, 30), (1, 1, 1), (33, 9, 40)])
+def test_pass_count_is_the_plans_length(spp, n_pixels, per_pass):
+    """last_render_info['passes'] (passes.count_passes) counts what plan_passes yields, and the
+    plan covers spp samples of every pixel exactly."""
+    from bdpt_jit.passes import count_passes, plan_passes
+    plan = list(plan_passes(spp, n_pixels, 1000, per_pass))
+    assert count_passes(spp, n_pixels, 1000, per_pass) == len(plan)
+    cover = [0] * n_pixels
+    for k, start, count in plan:
+        for p in range(start, start + count):
+            cover[p] += k
+    assert cover == [spp] * n_pixels
