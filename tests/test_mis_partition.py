@@ -244,3 +244,20 @@ def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
     np.testing.assert_allclose(total[any_strategy], 1.0, rtol=1e-5)
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
     assert np.all(w_rec[:, ~any_strategy] == 0)
+
+
+@pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
+def test_weights_are_never_nan(kind):
+    """A degenerate vertex (a ray that scraped its own surface: cos ~ 0, so the running
+    quantities overflow to inf) met by a zero density gives inf * 0 inside a weight: the weight
+    is then 0 (mis._finite), never NaN, for every strategy's weight."""
+    mis = MIS(kind, StrategySet('bdpt'))
+    inf, zero, one = mi.Float(np.inf), mi.Float(0.0), mi.Float(1.0)
+    ws = [mis.weight_s0(inf, one, zero, one), mis.weight_s0(one, inf, one, zero),
+          mis.weight_s1(inf, one, one, one, zero, one, one, one),
+          mis.weight_connect(inf, one, one, one, zero, one, one, one),
+          mis.weight_connect(one, one, inf, inf, one, zero, one, zero),
+          mis.weight_t1(inf, one, zero, one)]
+    for w in ws:
+        a = np.array(w, dtype=np.float64)
+        assert np.all(np.isfinite(a)) and np.all((a >= 0) & (a <= 1))

@@ -148,3 +148,17 @@ def test_gradients_in_other_variants(variant):
     assert r.returncode == 0, r.stderr[-3000:]
     line = [x for x in r.stdout.splitlines() if x.startswith('ERR')][-1].split()
     assert float(line[1]) < 1e-4 and line[2] == 'True', r.stdout
+
+
+def test_switching_variants_in_one_process():
+    """bdpt_jit imported under one variant keeps working after mi.set_variant + register():
+    the kernels' modules (holding the variant's types) are imported again."""
+    code = ("import numpy as np, mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\nimport bdpt_jit\n"
+            "mi.set_log_level(mi.LogLevel.Error)\n"
+            "def render():\n    d = mi.cornell_box(); d['sensor']['film'].update(width=8, height=8)\n"
+            "    return np.array(mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 3}), spp=4))\n"
+            "a = render()\nmi.set_variant('llvm_ad_mono'); bdpt_jit.register()\nb = render()\n"
+            "mi.set_variant('llvm_ad_rgb'); bdpt_jit.register()\nc = render()\n"
+            "print('SHAPES', a.shape, b.shape, c.shape, np.isfinite(b).all(), float(b.mean()) > 0, np.array_equal(a, c))\n")
+    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=600)
+    assert 'SHAPES (8, 8, 3) (8, 8, 1) (8, 8, 3) True True True' in r.stdout, r.stdout + r.stderr[-3000:]
