@@ -1,11 +1,15 @@
 """Comparison benchmarks of `bdpt` against Mitsuba's `path` and `ptracer`: error against run time.
 
-`bdpt` (power, balance and uniform MIS; technique pt and lt) and Mitsuba's `path` and `ptracer`, on the
-paper's scenes and the cases where BDPT should win, and Mitsuba 0.6's `bdpt` and `path` (the seed
-paper's own comparison) where a built Mitsuba 0.6 is given. Writes `docs/results.md` with its plots
+`bdpt` (power, balance and uniform MIS; technique pt and lt; vertex connection and merging, technique
+vcm, and vertex merging alone, technique vm) and Mitsuba's `path` and `ptracer`, on the paper's scenes,
+the cases where BDPT should win, caustics seen through glass (where only vertex merging does well) and
+a plain Cornell box, and Mitsuba 0.6's `bdpt` and `path` (the seed paper's own comparison) where a
+built Mitsuba 0.6 is given. Writes `docs/results.md` with its plots
 and crops under `docs/results/` (the realistic mode: `docs/results-realistic.md` and its folder).
 
     python benchmarks/compare.py --quick      # 64x64, budgets up to 0.8 s: ~20 min, ~10 min with cached references
+    python benchmarks/compare.py --quick --contestants bdpt,vcm,vm,path \
+        --scenes caustic,fig7-caustic,torus-glass,cornell-box   # issue 15's figures for vcm and vm (~15 min)
     python benchmarks/compare.py --full       # 96x96, budgets up to 2 s: ~50 min, ~20 min with cached references
     python benchmarks/compare.py --realistic --scene-file veach-bidir=PATH/TO/veach-bidir/scene.xml
                                               # 256x256, budgets 1, 4, 16, 64 s: bdpt, path, ptracer and
@@ -19,7 +23,8 @@ reference=mixed|light, ref_scale=N, focus=1, title=TEXT). Users' scenes stay whe
 Mitsuba 0.6: `--mitsuba06 PATH/TO/dist` (or the environment variable MITSUBA06_DIST) names a Mitsuba 0.6
 built by `benchmarks/mitsuba06.py build`; its `bdpt` and `path` then join the tables and plots as
 "mitsuba06 bdpt" and "mitsuba06 path", measured against a reference rendered by its own `bdpt`.
-Without it, the report says it was absent.
+Without it, the report says it was absent. Likewise `vcm` and `vm` where this bdpt_jit refuses the
+technique (before vertex merging landed): left out, and the report says why.
 
 References are cached under `benchmarks/cache/`. Every setting of a mode can be overridden (the test
 runs a tiny configuration into a temporary folder):
@@ -153,6 +158,16 @@ def main(argv=None):
     info['date'] = datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')
     m06, m06_status = find_mitsuba06(args, settings, scenes)
     contestants = [c for c in lib.contestants_of(settings.contestants) if c.renderer != 'mitsuba06' or m06]
+    absent = {}                         # a technique this bdpt_jit refuses (vcm and vm before they landed)
+    for c in contestants:
+        why = lib.unavailable(c)
+        if why:
+            absent[c.label] = why
+            lib.log(f'{c.label}: absent ({why}); the comparison goes on without it')
+    contestants = [c for c in contestants if c.label not in absent]
+    missing = [k for k in lib.REQUIRED if k not in [c.key for c in contestants]]
+    if missing:
+        sys.exit(f"compare.py: {', '.join(missing)} cannot run here: {absent}")
     t0 = time.perf_counter()
     results, images = [], {}
     for spec in scenes:
@@ -162,7 +177,7 @@ def main(argv=None):
         images[spec.key] = img
     elapsed = time.perf_counter() - t0
     report.write_report(results, images, contestants, settings, info, args.out, args.fig_dir, command, elapsed,
-                        mitsuba06=m06_status)
+                        mitsuba06=m06_status, absent=absent)
     lib.log(f'wrote {args.out} and {args.fig_dir}/ in {elapsed / 60:.1f} min')
 
 

@@ -1,5 +1,5 @@
-"""Error against run time: `bdpt` against Mitsuba's `path` and `ptracer`, and against Mitsuba 0.6's
-`bdpt` and `path` where a built Mitsuba 0.6 is given (the measurement part of `benchmarks/compare.py`;
+"""Error against run time: `bdpt` (and its vertex-merging techniques `vcm` and `vm`) against Mitsuba's
+`path` and `ptracer`, and against Mitsuba 0.6's `bdpt` and `path` where a built Mitsuba 0.6 is given (the measurement part of `benchmarks/compare.py`;
 `compare_report.py` writes the report, `mitsuba06.py` builds and runs Mitsuba 0.6).
 
 For each scene: a cached reference with its own remaining error, then every contestant over a range
@@ -52,6 +52,8 @@ class SceneSpec:
     max_depth: int
     crop: tuple             # (x0, y0, x1, y1) as fractions of the image
     focus: bool = False     # a scene where bdpt is expected to beat path at equal time (stated in the summary)
+    vcm_target: str = ''    # issue 15's equal-time target for `vcm`: 'caustic' (specular-diffuse-specular paths:
+                            # relMSE <= 0.25 of path's), 'plain' (none: within 1.2x of bdpt's), '' (none stated)
     ref_scale: int = 1      # the reference's batches take this many times the mode's ref_spp (hard scenes)
     user: bool = False      # given with --scene-file (`file` is then an absolute path)
 
@@ -69,16 +71,26 @@ SCENES = [
               'and glass spheres (the paper\'s Table 2)', 'light', 6, (0.3, 0.45, 0.8, 0.95), ref_scale=4),
     SceneSpec('fig7-caustic', 'sun-room-caustic.xml', "The paper's Figure 7 scene, caustic detail",
               'close-up of the sun\'s caustic under the glass sphere of the Figure 7 scene (the paper\'s Table 3)',
-              'light', 6, (0.3, 0.3, 0.9, 0.9), focus=True, ref_scale=12),
+              'light', 6, (0.3, 0.3, 0.9, 0.9), focus=True, ref_scale=12, vcm_target='caustic'),
     SceneSpec('veach-mis', 'veach-mis.xml', 'Veach-style MIS scene',
               'glossy plates of four roughnesses reflecting spherical lights of four sizes', 'mixed', 8,
-              (0.0, 0.5, 0.5, 1.0)),
+              (0.0, 0.5, 0.5, 1.0), vcm_target='plain'),
     SceneSpec('indirect-room', 'indirect-room.xml', 'Indirectly lit room',
               'the visible room is lit only through a narrow slit from a light facing away in the next room',
-              'mixed', 8, (0.0, 0.4, 0.5, 0.9), focus=True),
+              'mixed', 8, (0.0, 0.4, 0.5, 0.9), focus=True, vcm_target='plain'),
     SceneSpec('caustic', 'caustic.xml', 'Caustic from a small light',
               'a small spherical area light focused by a glass sphere onto a diffuse floor', 'mixed', 8,
-              (0.05, 0.45, 0.55, 0.95), focus=True, ref_scale=3),
+              (0.05, 0.45, 0.55, 0.95), focus=True, ref_scale=3, vcm_target='caustic'),
+    SceneSpec('torus-glass', 'torus-in-glass.xml', 'Torus in glass',
+              'a diffuse torus embedded in a block of smooth acrylic (IOR 1.49) over a diffuse floor, lit by a small '
+              'spherical area light: the torus is lit and seen only through the glass, and the floor is lit through '
+              'it (light -> glass -> diffuse -> glass -> camera: no connection or light-tracing strategy reaches '
+              'these paths; vertex merging does)', 'mixed', 10, (0.2, 0.25, 0.8, 0.85), ref_scale=8,
+              vcm_target='caustic'),
+    SceneSpec('cornell-box', 'cornell-box.xml', 'Cornell box',
+              'the classic diffuse Cornell box under a rectangular area light: no specular surface, so no '
+              'specular-diffuse-specular path (vertex merging adds only cost here)', 'mixed', 8,
+              (0.25, 0.5, 0.75, 1.0), vcm_target='plain'),
 ]
 
 
@@ -134,6 +146,9 @@ class Contestant:
     props: dict
     replica: bool = False   # rays counted by the replica in raycount.py (Mitsuba's integrators count none)
     renderer: str = 'mitsuba3'     # or 'mitsuba06': rendered by a built Mitsuba 0.6 (props['type'] is its integrator)
+    progressive: bool = False      # a fresh integrator for every render: `vcm` and `vm` shrink their merging radius
+                                   # over every pass of one integrator object, so a reused one would carry the radius
+                                   # of earlier renders into the next (renders would not be independent draws)
 
 
 CONTESTANTS = [
@@ -142,6 +157,9 @@ CONTESTANTS = [
     Contestant('bdpt-uniform', 'bdpt uniform', {'type': 'bdpt', 'mis': 'uniform'}),
     Contestant('bdpt-pt', 'bdpt pt', {'type': 'bdpt', 'technique': 'pt'}),
     Contestant('bdpt-lt', 'bdpt lt', {'type': 'bdpt', 'technique': 'lt'}),
+    # vertex connection and merging (issue 15), radius and radius_alpha at the integrator's defaults
+    Contestant('vcm', 'bdpt vcm', {'type': 'bdpt', 'technique': 'vcm'}, progressive=True),
+    Contestant('vm', 'bdpt vm', {'type': 'bdpt', 'technique': 'vm'}, progressive=True),
     Contestant('path', 'Mitsuba path', {'type': 'path'}, replica=True),
     Contestant('ptracer', 'Mitsuba ptracer', {'type': 'ptracer'}, replica=True),
 ]
@@ -188,7 +206,8 @@ MODES = {
     # --ref-spp for the scenes where bdpt wins by much).
     'realistic': Settings('realistic', res=256, budgets=(1.0, 4.0, 16.0, 64.0), repeats=1, probe_spp=(1, 4),
                           ref_spp=1024, ref_batches=16, pilot_spp=256, pilot_batches=4, count_spp=1,
-                          contestants=('bdpt', 'path', 'ptracer', 'mitsuba06-bdpt', 'mitsuba06-path'),
+                          contestants=('bdpt', 'vcm', 'vm', 'path', 'ptracer', 'mitsuba06-bdpt',
+                                       'mitsuba06-path'),
                           ref06_spp=128, ref06_batches=16),
 }
 
@@ -196,6 +215,29 @@ MODES = {
 def contestants_of(keys):
     """Contestant objects for keys, in the order of ALL_CONTESTANTS."""
     return [c for c in ALL_CONTESTANTS if c.key in keys]
+
+
+def unavailable(contestant):
+    """Why this bdpt_jit cannot run a Mitsuba 3 contestant (its integrator refuses the parameters: `vcm` and
+    `vm` before vertex merging landed), or None."""
+    if contestant.renderer != 'mitsuba3':
+        return None
+    try:
+        make_integrator(contestant, 8)
+    except Exception as e:          # Mitsuba wraps the plugin's error, traceback and all: its last line says why
+        lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+        return (lines[-1] if lines else type(e).__name__)[:300]
+    return None
+
+
+def contestant_settings(contestant):
+    """The integrator parameters a contestant leaves at their defaults and the report names (the merging
+    radius of `vcm` and `vm`), as {name: default}, from bdpt_jit's parameter table."""
+    if contestant.props.get('type') != 'bdpt' or contestant.props.get('technique') not in ('vcm', 'vm'):
+        return {}
+    from bdpt_jit import params
+    return {p.name: p.default for p in params.PARAMS
+            if p.name in ('radius', 'radius_alpha') and p.name not in contestant.props}
 
 
 def log(msg):
@@ -441,7 +483,7 @@ class Runner:
         self.contestants = contestants
         self.by_key = {c.key: c for c in contestants}
         self.integrators = {c.key: make_integrator(c, spec.max_depth) for c in contestants
-                            if c.renderer == 'mitsuba3'}
+                            if c.renderer == 'mitsuba3' and not c.progressive}
         self.m06, self.scene06 = m06, scene06                 # Mitsuba 0.6 and the scene's 0.6 form
         self.refs = {c.key: ref06 if c.renderer == 'mitsuba06' else ref for c in contestants}
         self.seed = 0
@@ -459,9 +501,11 @@ class Runner:
             t, wall, img = self.m06.render(self.scene06, c.props['type'], spp, seed=self.seed)
             self.overhead06.append(wall - t)
             return t, to_np(img)
+        # a progressive contestant gets a fresh integrator (its radius from the first pass), built untimed
+        integ = make_integrator(c, self.spec.max_depth) if c.progressive else self.integrators[key]
         dr.sync_thread()
         t0 = time.perf_counter()
-        img = mi.render(self.scene, integrator=self.integrators[key], spp=spp, seed=self.seed)
+        img = mi.render(self.scene, integrator=integ, spp=spp, seed=self.seed)
         dr.eval(img)
         dr.sync_thread()
         return time.perf_counter() - t0, to_np(img)
@@ -569,7 +613,11 @@ class Runner:
             else:
                 integ = make_integrator(c, self.spec.max_depth, statistics=True)
                 mi.render(self.scene, integrator=integ, spp=spp, seed=seed)
-                r = dict(integ.last_render_info['rays'])
+                r = dict((getattr(integ, 'last_render_info', None) or {}).get('rays') or {})
+                if 'rays' not in r:             # a technique that counts no rays
+                    log(f'{self.spec.key}: {c.key} counted no rays (statistics=true gave none)')
+                    out[c.key] = None
+                    continue
             n = w * h * spp
             out[c.key] = {'rays_per_sample': r['rays'] / n, 'zero_per_sample': r['zero_contribution_rays'] / n,
                           'detail_per_sample': {k: v / n for k, v in r.items() if k not in ('rays', 'samples')},

@@ -13,13 +13,18 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from compare_lib import BASELINE, QUOTABLE, EPS_REL  # noqa: E402
+from compare_lib import BASELINE, QUOTABLE, EPS_REL, contestant_settings  # noqa: E402
+
+# issue 15's equal-time targets for `vcm` (relMSE ratios): on scenes with specular-diffuse-specular paths, at most
+# VCM_CAUSTIC of path's; on scenes without, at most VCM_PLAIN times bdpt's
+VCM_CAUSTIC, VCM_PLAIN = 0.25, 1.2
 
 STYLE = {
     'bdpt': ('tab:red', 'o', '-'), 'bdpt-balance': ('tab:orange', 's', '-'), 'bdpt-uniform': ('tab:brown', 'v', '-'),
     'bdpt-pt': ('tab:purple', '^', '--'), 'bdpt-lt': ('tab:pink', 'D', '--'),
     'path': ('tab:blue', 'o', '-'), 'ptracer': ('tab:cyan', 's', '-'),
     'mitsuba06-bdpt': ('tab:green', 'P', ':'), 'mitsuba06-path': ('tab:olive', 'X', ':'),
+    'vcm': ('black', '*', '-'), 'vm': ('tab:gray', 'h', '-.'),
 }
 
 
@@ -225,6 +230,57 @@ def verdict(res, contestants):
     return f"- **{spec['title']}** (`{scene_file(spec)}`): {head}: {figures}{extra}."
 
 
+def pair_ratio(res, a, b, field='rel'):
+    """Contestant a's error at equal time over contestant b's: (cell, ratio, quotable)."""
+    et = res['equal_time']['points']
+    r = et[a][field] / et[b][field]
+    ok = quotable(et[a][field], ref_err(res, a, field)) and quotable(et[b][field], ref_err(res, b, field))
+    return (f'{r:.3g}' if ok else f'({r:.3g})†'), r, ok
+
+
+def ranking(res, contestants):
+    """Contestants by relMSE at equal time, lowest first."""
+    et = res['equal_time']['points']
+    return sorted(contestants, key=lambda c: et[c.key]['rel'])
+
+
+def wins_table(results, contestants, names):
+    """Per scene: the contestant with the lowest relMSE at equal time, the runner-up, and how far apart."""
+    rows = []
+    for r in results:
+        order = ranking(r, contestants)
+        et = r['equal_time']['points']
+        first, second = order[0], order[1] if len(order) > 1 else order[0]
+        cell, _, _ = pair_ratio(r, second.key, first.key)
+        rows.append([r['spec']['key'], names[first.key], names[second.key], cell,
+                     ' < '.join(names[c.key] for c in order)])
+    return table(['scene', 'lowest relMSE', 'runner-up', 'runner-up / lowest', 'order of relMSE (equal time)'], rows)
+
+
+def vcm_rows(results, contestants):
+    """Issue 15's targets: per scene, vcm's and vm's relMSE ratios to path and to bdpt at equal time, the
+    target where the scene states one, and whether it is met."""
+    keys = {c.key for c in contestants}
+    rows, verdicts = [], []
+    for r in results:
+        spec = r['spec']
+        kind = spec.get('vcm_target', '')
+        row = [spec['key'], {'caustic': 'yes: a caustic scene', 'plain': 'none'}.get(kind, 'a few (no target)')]
+        for a, b in (('vcm', BASELINE), ('vm', BASELINE), ('bdpt', BASELINE), ('vcm', 'bdpt'), ('vm', 'bdpt')):
+            row.append(pair_ratio(r, a, b)[0] if a in keys and b in keys else '–')
+        target, met = '–', '–'
+        if 'vcm' in keys and kind in ('caustic', 'plain'):
+            other, bound = (BASELINE, VCM_CAUSTIC) if kind == 'caustic' else ('bdpt', VCM_PLAIN)
+            _, ratio, ok = pair_ratio(r, 'vcm', other)
+            target = f"vcm / {'path' if other == BASELINE else 'bdpt'} <= {bound:g}"
+            met = ('yes' if ratio <= bound else 'no') if ok else 'undecided'
+            verdicts.append((spec, met, ratio, target))
+        rows.append(row + [target, met])
+    header = ['scene', 'S-D-S paths', 'vcm / path', 'vm / path', 'bdpt / path', 'vcm / bdpt', 'vm / bdpt', 'target',
+              'met']
+    return table(header, rows), verdicts
+
+
 def scene_file(spec):
     return spec['file'] if spec.get('user') else f"scenes/{spec['file']}"
 
@@ -245,7 +301,26 @@ def mitsuba06_line(status):
             "its own sampler seed (the seed edit of `benchmarks/mitsuba06.py`).")
 
 
-def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed, mitsuba06=None):
+def absent_line(absent):
+    """The report's line on contestants this bdpt_jit refused (vcm and vm before vertex merging landed)."""
+    if not absent:
+        return None
+    return ('- **Absent** (this bdpt_jit refuses them): '
+            + '; '.join(f'{label}: {why}' for label, why in absent.items()) + '.')
+
+
+def contestant_text(c):
+    extra = contestant_settings(c)
+    text = f'{c.label} (`{json.dumps(c.props)}`'
+    if extra:
+        text += ', ' + ', '.join(f'{k} {v:g}' for k, v in extra.items()) + ' by default'
+    if c.progressive:
+        text += ', a fresh integrator per render'
+    return text + (', Mitsuba 0.6)' if c.renderer == 'mitsuba06' else ')')
+
+
+def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed, mitsuba06=None,
+                 absent=None):
     out_md = Path(out_md)
     fig_dir = Path(fig_dir)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -272,10 +347,9 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
           f"{settings.count_spp} spp" + (f"; Mitsuba 0.6's references in {settings.ref06_batches} batches of "
                                          f"{settings.ref06_spp} spp of its `bdpt`" if used06 else '') + '.',
           f"- Contestants, all with the scene's `max_depth` and `rr_depth` 5: "
-          + ', '.join(f'{c.label} (`{json.dumps(c.props)}`' + (', Mitsuba 0.6)' if c.renderer == 'mitsuba06' else ')')
-                      for c in contestants) + '.',
-          mitsuba06_line(mitsuba06),
-          '']
+          + ', '.join(contestant_text(c) for c in contestants) + '.',
+          mitsuba06_line(mitsuba06)]
+    L += [line for line in (absent_line(absent),) if line] + ['']
     L += ['## Summary: relative MSE at equal time, as a ratio to Mitsuba `path`', '',
           f"Each cell is a contestant's relative MSE divided by `path`'s, both rendered with the same wall-clock budget "
           f"(the last budget above; the exact times are in each scene's table). Below 1: lower error than `path`. "
@@ -304,6 +378,25 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
     if others:
         L += ['The other scenes:', '']
         L += [verdict(r, contestants) for r in others] + ['']
+    L += ['### Where each technique wins', '',
+          'Per scene, the contestants ordered by relative MSE at equal time (lowest first), and how far the runner-up '
+          'is behind the winner (its relMSE over the winner\'s; † where the reference cannot tell them apart).', '',
+          wins_table(results, contestants, names), '']
+    if {'vcm', 'vm'} & set(names):
+        vt, verdicts = vcm_rows(results, contestants)
+        L += ['### Vertex connection and merging: `vcm` and `vm` (issue 15)', '',
+              f"`vcm` is `bdpt` with every connection strategy plus vertex merging (Georgiev et al. 2012); `vm` merges "
+              f"alone (progressive photon mapping: a merge at the first non-specular camera vertex). Both are "
+              f"consistent, not unbiased: their merging radius shrinks pass by pass, and their error here includes "
+              f"their bias. The issue's equal-time targets: relMSE at most {VCM_CAUSTIC:g} of `path`'s on scenes with "
+              f"specular-diffuse-specular (S-D-S) paths (caustics seen through glass or in a mirror), and within "
+              f"{VCM_PLAIN:g}x of `bdpt`'s on scenes without. Ratios of relMSE at equal time; † as above.", '',
+              vt, '']
+        for spec, met, ratio, target in verdicts:
+            L.append(f"- **{spec['title']}** (`{scene_file(spec)}`): {target}: "
+                     + {'yes': f'met ({ratio:.3g})', 'no': f'**not met** ({ratio:.3g})',
+                        'undecided': f'cannot be decided at this reference quality ({ratio:.3g})'}[met] + '.')
+        L += ['']
     L += ['### Compile time, all scenes together', '',
           'Kernel compilation is kept out of the render times: every point starts with a warm-up render at its '
           'sample count, whose compilation Dr.Jit\'s kernel history records (LLVM codegen and backend). '

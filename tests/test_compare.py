@@ -21,9 +21,10 @@ SCENES = os.path.join(REPO, 'scenes')
 BENCH = os.path.join(REPO, 'benchmarks')
 VEACH_BIDIR = '/work/shared/scenes/bitterli/veach-bidir/scene.xml'     # a user's scene, where present
 sys.path.insert(0, BENCH)
-CONTESTANT_LABELS = ('bdpt power', 'bdpt balance', 'bdpt uniform', 'bdpt pt', 'bdpt lt', 'Mitsuba path',
-                     'Mitsuba ptracer')
-TEXT_COLUMNS = {'contestant', 'point', 'scene'}
+BASE_LABELS = ('bdpt power', 'bdpt balance', 'bdpt uniform', 'bdpt pt', 'bdpt lt', 'Mitsuba path', 'Mitsuba ptracer')
+VCM_LABELS = ('bdpt vcm', 'bdpt vm')         # where this bdpt_jit has vertex merging (issue 15)
+TEXT_COLUMNS = {'contestant', 'point', 'scene', 'lowest relMSE', 'runner-up', 'order of relMSE (equal time)', 'S-D-S paths',
+                'target', 'met'}
 NUMBER = re.compile(r'^[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?$')
 
 
@@ -59,7 +60,18 @@ def reject_constant(name):
     raise AssertionError(f'results.json holds {name}')
 
 
+def contestant_labels():
+    """The quick mode's contestants as the report names them, in its order: vcm and vm where they run here."""
+    import compare_lib as lib
+    refused = [lib.unavailable(c) for c in lib.CONTESTANTS if c.key in ('vcm', 'vm')]
+    labels = list(BASE_LABELS)
+    if not any(refused):
+        labels[5:5] = VCM_LABELS
+    return tuple(labels), not any(refused)
+
+
 def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
+    CONTESTANT_LABELS, has_vcm = contestant_labels()
     out, figs, cache = tmp_path / 'results.md', tmp_path / 'results', tmp_path / 'cache'
     scenes = ['caustic', 'fig7-caustic']     # one reference of each kind: path + ptracer, ptracer over a region
     cmd = [sys.executable, os.path.join(REPO, 'benchmarks', 'compare.py'), '--quick', '--res', '12',
@@ -73,6 +85,7 @@ def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
     assert '**quick mode**' in text and 'Mitsuba 3.9.1' in text and 'cores' in text
     assert '- Mitsuba 0.6: **absent**: no Mitsuba 0.6 binary given' in text
     assert 'mitsuba06' not in markdown_tables(text)[0][0][2:]
+    assert ('**Absent** (this bdpt_jit refuses them): bdpt vcm' in text) != has_vcm
 
     # every plot the report links is there and is a PNG; one error plot and one crop sheet per scene
     links = re.findall(r'!\[[^\]]*\]\(([^)]+)\)', text)
@@ -86,7 +99,7 @@ def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
     # the tables: summary (relMSE and MSE ratios, compile), and per scene the sweep, equal samples, equal time
     # and compile time
     tables = markdown_tables(text)
-    assert len(tables) == 3 + 4 * len(scenes)
+    assert len(tables) == 4 + has_vcm + 4 * len(scenes)
     summary_header, summary_rows = tables[0]
     assert [r[0] for r in summary_rows] == scenes
     assert all(label in summary_header for label in CONTESTANT_LABELS)
@@ -104,8 +117,18 @@ def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
                 numbers += 1
     assert numbers > 200
     assert [r[0] for r in tables[1][1]] == scenes          # the MSE ratios
+    wins = [rows for header, rows in tables if 'lowest relMSE' in header]
+    assert len(wins) == 1 and [r[0] for r in wins[0]] == scenes
+    for row in wins[0]:
+        assert row[1] in CONTESTANT_LABELS and sorted(row[4].split(' < ')) == sorted(CONTESTANT_LABELS)
+    vcm = [rows for header, rows in tables if 'vcm / path' in header]
+    assert len(vcm) == has_vcm
+    if has_vcm:         # both scenes state the caustic target; the check is `met`, `not met` or undecided
+        assert [r[0] for r in vcm[0]] == scenes and all(r[-2] == 'vcm / path <= 0.25' for r in vcm[0])
+        assert all(r[-1] in ('yes', 'no', 'undecided') for r in vcm[0])
     for header, rows in tables[2:]:
-        assert [r[0] for r in rows if r[0] in CONTESTANT_LABELS]
+        if 'scene' not in header:
+            assert [r[0] for r in rows if r[0] in CONTESTANT_LABELS]
     equal_time = [rows for header, rows in tables if 'relMSE / path' in header]
     assert len(equal_time) == len(scenes)
     for rows in equal_time:
