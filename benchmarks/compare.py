@@ -8,13 +8,18 @@ built Mitsuba 0.6 is given. Writes `docs/results.md` with its plots
 and crops under `docs/results/` (the realistic mode: `docs/results-realistic.md` and its folder).
 
     python benchmarks/compare.py --quick      # 64x64, budgets up to 0.8 s: ~20 min, ~10 min with cached references
-    python benchmarks/compare.py --quick --contestants bdpt,vcm,vm,path \
-        --scenes caustic,fig7-caustic,torus-glass,cornell-box   # issue 15's figures for vcm and vm (~15 min)
     python benchmarks/compare.py --full       # 96x96, budgets up to 2 s: ~50 min, ~20 min with cached references
     python benchmarks/compare.py --realistic --scene-file veach-bidir=PATH/TO/veach-bidir/scene.xml
                                               # 256x256, budgets 1, 4, 16, 64 s: bdpt, path, ptracer and
                                               # Mitsuba 0.6's; ~20 min a scene on 2 cores once references
                                               # are cached (they take hours the first time: see compare_lib.MODES)
+
+A run on a few scenes or contestants can be written as a section of the report rather than in its place:
+`--section NAME` puts it between markers in `--out` (a later run with the same NAME replaces it) with its
+figures under `docs/results/NAME/`; issue 15's figures for `vcm` and `vm` are such a section:
+
+    python benchmarks/compare.py --quick --section vcm --contestants bdpt,vcm,vm,path \
+        --scenes caustic,fig7-caustic,torus-glass,cornell-box
 
 Scenes: the repository's (`--scenes` picks some), plus any given with `--scene-file KEY=PATH` (a Mitsuba 3
 scene file that takes `$res`, or `$resx` and `$resy`; options after commas: max_depth=N,
@@ -36,6 +41,7 @@ import argparse
 import dataclasses
 import datetime
 import os
+import re
 import shlex
 import sys
 import time
@@ -66,7 +72,10 @@ def parse_args(argv=None):
                     help=f'a built Mitsuba 0.6 (its dist/ folder or its `mitsuba`; default: ${mitsuba06.ENV_VAR})')
     ap.add_argument('--out', type=Path, help='report (default: docs/results.md; --realistic: docs/results-realistic.md)')
     ap.add_argument('--fig-dir', type=Path, help='plots, crops and results.json (default: docs/results/; '
-                    '--realistic: docs/results-realistic/)')
+                    '--realistic: docs/results-realistic/; with --section NAME: that folder\'s NAME/)')
+    ap.add_argument('--section', metavar='NAME', help='write the report as a section NAME of --out (between '
+                    'markers, replacing an earlier section NAME, the rest of the file kept), its figures under '
+                    'NAME/ of the figure folder: a run on a few scenes or contestants beside the full report')
     ap.add_argument('--cache-dir', type=Path, default=lib.REPO / 'benchmarks' / 'cache',
                     help='reference cache (default: %(default)s)')
     g = ap.add_argument_group('overrides of the mode\'s settings')
@@ -84,7 +93,9 @@ def parse_args(argv=None):
     args = ap.parse_args(argv)
     name = 'results-realistic' if args.mode == 'realistic' else 'results'     # the realistic report apart
     args.out = args.out or lib.REPO / 'docs' / f'{name}.md'
-    args.fig_dir = args.fig_dir or lib.REPO / 'docs' / name
+    if args.section is not None and not re.fullmatch(r'[A-Za-z0-9_.-]+', args.section):
+        ap.error('--section: a name of letters, digits, -, _ or .')
+    args.fig_dir = args.fig_dir or lib.REPO / 'docs' / name / (args.section or '')
     s = dataclasses.replace(lib.MODES[args.mode])
     for field in ('res', 'repeats', 'ref_spp', 'ref_batches', 'pilot_spp', 'pilot_batches', 'count_spp',
                   'ref06_spp', 'ref06_batches'):
@@ -177,7 +188,7 @@ def main(argv=None):
         images[spec.key] = img
     elapsed = time.perf_counter() - t0
     report.write_report(results, images, contestants, settings, info, args.out, args.fig_dir, command, elapsed,
-                        mitsuba06=m06_status, absent=absent)
+                        mitsuba06=m06_status, absent=absent, section=args.section)
     lib.log(f'wrote {args.out} and {args.fig_dir}/ in {elapsed / 60:.1f} min')
 
 

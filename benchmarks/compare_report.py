@@ -319,8 +319,43 @@ def contestant_text(c):
     return text + (', Mitsuba 0.6)' if c.renderer == 'mitsuba06' else ')')
 
 
+def section_markers(name):
+    return f'<!-- compare.py --section {name}: begin (generated; rerun the command to replace) -->', \
+        f'<!-- compare.py --section {name}: end -->'
+
+
+def put_section(out_md, name, text):
+    """Writes `text` into out_md between the section's markers: in place of an earlier run's section of that
+    name, or appended to what the file holds (the rest of the file is kept as it is)."""
+    begin, end = section_markers(name)
+    block = f'{begin}\n\n{text.rstrip()}\n\n{end}\n'
+    old = out_md.read_text() if out_md.exists() else ''
+    i, j = old.find(begin), old.find(end)
+    if i >= 0 and j > i:
+        new = old[:i] + block + old[j + len(end):].lstrip('\n')
+    else:
+        new = old.rstrip('\n') + ('\n\n' if old.strip() else '') + block
+    out_md.write_text(new)
+
+
+def demote(lines, title):
+    """The report as a section of another document: its title becomes `title` at level 2, its headings go one
+    level down."""
+    out = []
+    for line in lines:
+        if line.startswith('# '):
+            out.append('## ' + title)
+        elif line.startswith('#'):
+            out.append('#' + line)
+        else:
+            out.append(line)
+    return out
+
+
 def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed, mitsuba06=None,
-                 absent=None):
+                 absent=None, section=None):
+    """Writes the report to out_md, or with `section` (a name) as a section of out_md: between markers,
+    replacing an earlier run's section of that name and keeping the rest of the file."""
     out_md = Path(out_md)
     fig_dir = Path(fig_dir)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -550,7 +585,10 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
             if used06 else []),
           '']
     L += [f"Raw figures: [`{rel(fig_dir / 'results.json')}`]({rel(fig_dir / 'results.json')}).", '']
-    out_md.write_text('\n'.join(L))
+    if section:
+        put_section(out_md, section, '\n'.join(demote(L, f"Section `{section}`: {L[0].lstrip('# ')}")))
+    else:
+        out_md.write_text('\n'.join(L))
     with open(fig_dir / 'results.json', 'w') as f:
         json.dump(finite_json({'settings': settings.__dict__, 'machine': info, 'command': command,
                                'elapsed_s': elapsed, 'mitsuba06': mitsuba06, 'scenes': results}),

@@ -148,6 +148,35 @@ def test_quick_mode_writes_finite_tables_and_plots(tmp_path):
             assert r['rays_per_sample'] >= r['zero_per_sample'] >= 0, key
 
 
+def test_section_keeps_the_rest_of_the_report(tmp_path):
+    """--section NAME writes the run between markers in --out, after what the file holds, its figures under
+    NAME/ of the figure folder; a second run with the same NAME replaces the section, the rest stays."""
+    out, cache = tmp_path / 'results.md', tmp_path / 'cache'
+    out.write_text('# The full report\n\nkept as it is\n')
+    cmd = [sys.executable, os.path.join(BENCH, 'compare.py'), '--quick', '--res', '8', '--probe-spp', '1',
+           '--budgets', '0.02', '--repeats', '1', '--ref-spp', '4', '--ref-batches', '2', '--pilot-spp', '2',
+           '--pilot-batches', '2', '--count-spp', '1', '--scenes', 'cornell-box', '--contestants', 'bdpt,path',
+           '--section', 'extra', '--out', str(out), '--cache-dir', str(cache), '--fig-dir', str(tmp_path / 'figs')]
+    env = {k: v for k, v in os.environ.items() if k != 'MITSUBA06_DIST'}
+    for run in range(2):
+        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        text = out.read_text()
+        assert text.startswith('# The full report\n\nkept as it is\n\n<!-- compare.py --section extra: begin')
+        assert text.count('--section extra: begin') == 1 and text.count('--section extra: end') == 1
+        assert text.count('\n# ') == 0 and '\n## Section `extra`: Comparison benchmarks' in text
+        assert '\n### Summary: relative MSE at equal time' in text and '\n### Cornell box' in text
+        for link in re.findall(r'!\[[^\]]*\]\(([^)]+)\)', text):
+            assert (out.parent / link).read_bytes()[:4] == b'\x89PNG', link
+    assert (tmp_path / 'figs' / 'cornell-box-error.png').exists()
+    # without --fig-dir, the figures go to docs/results/NAME/
+    import compare
+    args, _, _ = compare.parse_args(['--quick', '--section', 'vcm'])
+    assert args.fig_dir == compare.lib.REPO / 'docs' / 'results' / 'vcm'
+    with pytest.raises(SystemExit):
+        compare.parse_args(['--quick', '--section', 'a b'])
+
+
 def test_path_replica_counts_the_camera_rays_bdpt_pt_traces():
     """bdpt with technique=pt walks camera subpaths as Mitsuba's path does (same sampling, same
     Russian roulette on a camera subpath), so the replica's camera-ray count must match bdpt's own
