@@ -4,6 +4,7 @@ figures as JSON. Reads only what `compare_lib.run_scene` measured (and whether M
 import json
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -338,6 +339,17 @@ def put_section(out_md, name, text):
     out_md.write_text(new)
 
 
+def sections_of(text):
+    """The --section blocks a report holds (markers included), in order: a full run keeps them."""
+    out = []
+    for m in re.finditer(r'<!-- compare\.py --section ([A-Za-z0-9_.-]+): begin', text):
+        end = section_markers(m.group(1))[1]
+        j = text.find(end, m.start())
+        if j > 0:
+            out.append(text[m.start():j + len(end)] + '\n')
+    return out
+
+
 def demote(lines, title):
     """The report as a section of another document: its title becomes `title` at level 2, its headings go one
     level down."""
@@ -355,7 +367,8 @@ def demote(lines, title):
 def write_report(results, images, contestants, settings, info, out_md, fig_dir, command, elapsed, mitsuba06=None,
                  absent=None, section=None):
     """Writes the report to out_md, or with `section` (a name) as a section of out_md: between markers,
-    replacing an earlier run's section of that name and keeping the rest of the file."""
+    replacing an earlier run's section of that name and keeping the rest of the file. A full report keeps
+    the sections the file held (appended after it)."""
     out_md = Path(out_md)
     fig_dir = Path(fig_dir)
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -588,7 +601,8 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
     if section:
         put_section(out_md, section, '\n'.join(demote(L, f"Section `{section}`: {L[0].lstrip('# ')}")))
     else:
-        out_md.write_text('\n'.join(L))
+        kept = sections_of(out_md.read_text()) if out_md.exists() else []
+        out_md.write_text('\n'.join(L) + ''.join('\n' + block for block in kept))
     with open(fig_dir / 'results.json', 'w') as f:
         json.dump(finite_json({'settings': settings.__dict__, 'machine': info, 'command': command,
                                'elapsed_s': elapsed, 'mitsuba06': mitsuba06, 'scenes': results}),

@@ -169,6 +169,13 @@ def test_section_keeps_the_rest_of_the_report(tmp_path):
         for link in re.findall(r'!\[[^\]]*\]\(([^)]+)\)', text):
             assert (out.parent / link).read_bytes()[:4] == b'\x89PNG', link
     assert (tmp_path / 'figs' / 'cornell-box-error.png').exists()
+    # a full report in its place keeps the section
+    import compare_report as report
+    section = text[text.index('<!-- compare.py --section extra: begin'):]
+    assert report.sections_of(text) == [section]
+    report.put_section(out, 'other', 'two')
+    assert report.sections_of(out.read_text()) == [section, report.section_markers('other')[0] + '\n\ntwo\n\n'
+                                                   + report.section_markers('other')[1] + '\n']
     # without --fig-dir, the figures go to docs/results/NAME/
     import compare
     args, _, _ = compare.parse_args(['--quick', '--section', 'vcm'])
