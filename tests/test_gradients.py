@@ -339,3 +339,56 @@ def test_new_emitter_kinds_are_linear_in_emission(builder):
         ref = np.array(mi.render(scene, integrator=integ, spp=4, seed=2))
         err = np.abs(g - ref).max() / max(ref.mean(), 1e-12)
         assert err < 1e-3, f'{builder} {key}: d image/d s differs from the image by {err:.3g} of its mean'
+
+
+# ---------------------------------------------------------------------------- vertex translation: closed scenes
+def empty_cornell_box():
+    """Mitsuba's Cornell box without its two boxes, its light a thin box (a convex mesh
+    emitter: no part of it hides another) under a black ceiling, the camera tilted down so that
+    neither the light nor the ceiling is in view. Moving the light within its plane moves no
+    visibility boundary: nothing stands between it and the walls or the floor, the walls and
+    the floor form a convex room (no point of them hides another), and the only thing the light
+    hides (the ceiling, and a 0.015-high strip of wall above its lower face) reflects nothing or
+    is too small to matter. The derivative is not small: the walls and the floor are lit
+    directly by the light, and every wall sees the light move towards or away from it."""
+    import stability_cases as sc
+    T = mi.ScalarTransform4f
+    d = sc.cornell(RES)
+    for k in ('small-box', 'large-box', 'light'):
+        d.pop(k)
+    d['black'] = {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': 0.0}}
+    d['ceiling'] = dict(d['ceiling'], bsdf={'type': 'ref', 'id': 'black'})
+    d['light'] = {'type': 'cube', 'to_world': T().translate([0.0, 0.99, 0.01]).scale([0.23, 0.005, 0.19]),
+                  'bsdf': {'type': 'ref', 'id': 'black'},
+                  'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': [18.4, 14.0, 6.75]}}}
+    # 12.3 degrees down: the view's upper edge reaches y = 0.63 at the back wall
+    d['sensor']['to_world'] = T().look_at(origin=[0, 0, 3.9], target=[0, -0.85, 0], up=[0, 1, 0])
+    return mi.load_dict(d)
+
+
+def assert_nonzero(fd, z=5.0):
+    """The image mean's derivative is further than z standard errors from 0: the comparison
+    tests a derivative, not noise."""
+    m = fd.mean(axis=(1, 2, 3))
+    assert abs(m.mean()) > z * m.std(ddof=1) / np.sqrt(len(m)), (m.mean(), m.std(ddof=1))
+
+
+def translation(params, key, direction):
+    n = dr.width(params[key]) // 3
+    return dr.ravel(mi.Point3f(*(mi.Float(c) + dr.zeros(mi.Float, n) for c in direction)))
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+def test_cornell_light_translation_agrees_with_finite_differences(technique):
+    """Cornell box (empty_cornell_box): the light moved within its plane (x and z), forward
+    derivative against central finite differences per 8x8 block and for the image mean."""
+    scene = empty_cornell_box()
+    params = mi.traverse(scene)
+    key = 'light.vertex_positions'
+    delta = translation(params, key, (1.0, 0.0, 0.6))
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': technique})
+    ad = forward_batches(scene, key, delta, integ, 32, 12)
+    fd = fd_batches(scene, key, delta, 0.02, integ, 32, 12)
+    assert np.all(np.isfinite(ad))
+    assert_nonzero(fd)
+    assert_agree(ad, fd, f'cornell light {technique}')
