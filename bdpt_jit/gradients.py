@@ -20,10 +20,27 @@ of the image, as long as the parameter moves no visibility boundary: silhouettes
 of emitters and of the image's own content are not handled (their boundary terms are missing:
 a parameter that moves an edge seen against something else gets a biased derivative there).
 
-Not handled, and refused (``check_parameters``): sensor parameters, point and spot light
-positions, the index of refraction of a smooth dielectric (it turns a delta lobe), and shape
-parameters in scenes with delta BSDFs (a specular chain constrains its vertices: its
-derivative needs the manifold of specular paths, Jakob and Marschner 2012).
+Delta vertices (mirrors, smooth glass) with geometry: a delta vertex's outgoing direction is
+fixed by its incoming one, so the vertex after it cannot be a material point (moving the vertex
+before it would break the law of reflection). In a differentiable pass with geometry, the vertex
+after a delta vertex is the intersection of the delta direction computed with derivatives
+(``slide``: it slides over its surface as the direction turns), and a ray that leaves the scene
+there looks up the environment in that direction (``env_direction_ratio``). That is Veach's
+path integral with each specular chain integrated out from its camera-side end, so it is
+unbiased for every strategy that traces the chain from the camera: technique ``pt`` (hits and
+emitter sampling). The light subpaths of bdpt trace chains from the other end (there the
+vertex after the chain, towards the camera, is the ray intersection, and the one before it a
+material point): the same path is parametrised in two ways, the derivatives of the two
+integrands differ by a divergence term, and MIS weights that mix them leave a bias. So geometry
+in scenes with delta BSDFs is refused for every technique but ``pt`` (``check_technique``). To
+lift it for bdpt, the strategies that cross a specular chain from the light side must leave
+the partition of unity (as light tracing's splats do for geometry): a camera subpath's d_vc set
+to 0 at a delta vertex, and light vertices after a delta vertex not connected.
+
+Not handled, and refused (``check_parameters``, ``check_technique``): sensor parameters, point
+and spot light positions, the index of refraction of a smooth dielectric (it turns a delta
+lobe), shape parameters with a directionalarea emitter, and shape parameters in scenes with
+delta BSDFs with techniques other than ``pt``.
 
 The primal image is never changed: ``dr.replace_grad`` keeps every primal value and only
 exchanges gradients.
@@ -67,15 +84,50 @@ def check_parameters(params, scene=None, has_delta=False):
             why = 'sensor parameters and the placement of point, spot and analytic shapes'
         elif leaf in ('eta', 'int_ior', 'ext_ior') and cls in _DELTA_IOR:
             why = "the index of refraction of a smooth dielectric (it turns a delta lobe's direction)"
-        elif (leaf in _GEOMETRY_LEAVES or key.endswith('to_world')) and (has_delta or _delta_emitters(scene)):
-            why = ('shape geometry in a scene with delta (specular) BSDFs or a directionalarea emitter '
-                   '(delta directions constrain the vertices after them)')
+        elif (leaf in _GEOMETRY_LEAVES or key.endswith('to_world')) and _delta_emitters(scene):
+            why = ('shape geometry in a scene with a directionalarea emitter (its delta direction '
+                   'constrains the vertex after it, which the light subpath places)')
         if why is not None:
             raise NotImplementedError(
                 f"bdpt: gradients with respect to '{key}' are not supported: {why}. bdpt differentiates "
                 "BSDF and emitter values (reflectance, roughness, specular reflectance/transmittance, "
-                "radiance, intensity, irradiance, environment texels) and shape vertex positions in "
-                "scenes without delta BSDFs (interior derivatives: silhouettes are not handled)")
+                "radiance, intensity, irradiance, environment texels) and shape vertex positions "
+                "(interior derivatives: silhouettes are not handled; in scenes with delta BSDFs with "
+                "technique 'pt' only)")
+    if scene is not None:
+        _GEOMETRY[id(scene)] = (tuple(geometry_keys(params)), bool(has_delta))
+
+
+# id(scene) -> (the gradient-enabled geometry keys, the scene has delta BSDFs), recorded by
+# check_parameters at the start of every differentiable render (integrator.differentiable_passes)
+_GEOMETRY = {}
+
+
+def _geometry(c):
+    return _GEOMETRY.get(id(c.scene), ((), False))[0] if c.ad else ()
+
+
+def slides_after_delta(c):
+    """A differentiable pass with respect to geometry in a scene with delta BSDFs: the vertex
+    after a delta vertex is a ray intersection, not a material point (``edge_ratio``)."""
+    return c.ad and c.has_delta and bool(_geometry(c))
+
+
+def check_technique(c):
+    """Geometry in a scene with delta BSDFs is differentiated with technique 'pt' only: refuse
+    the others (called when a pass starts tracing)."""
+    if not slides_after_delta(c) or c.strategies.technique == 'pt':
+        return
+    key = _geometry(c)[0]
+    raise NotImplementedError(
+        f"bdpt: gradients with respect to '{key}' are not supported with technique "
+        f"'{c.strategies.technique}' in a scene with delta (specular) BSDFs: a specular chain pins the "
+        "vertex after it to the one before it, and the camera and the light subpaths pin it from opposite "
+        "ends (each side's vertex after the chain is a ray intersection, the other side's a material "
+        "point). The strategies that cross a chain from the light side and those that cross it from the "
+        "camera side parametrise the same paths differently, and MIS weights that mix the two give a "
+        "biased derivative. Use technique 'pt' (every chain crossed from the camera: unbiased interior "
+        "derivative), or differentiate BSDF and emitter values")
 
 
 def geometry_keys(params):
@@ -100,6 +152,8 @@ def intersect(c, ray, active, primary=False):
     (RayFlags.FollowShape): it moves with the shape's parameters. A camera ray's first hit
     slides along its ray instead (``primary``): a pixel sees through a fixed footprint of
     directions, so its first vertex is parametrised by the direction (solid angle)."""
+    if primary:
+        check_technique(c)
     if not c.ad or primary:
         return c.scene.ray_intersect(ray, active)
     return c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
@@ -140,9 +194,52 @@ def edge_ratio(c, camera_side, si, bsdf, si_next, d_escape, u, is_delta, active)
     out = ratio(f * g)
     if is_delta is not None:
         mode = connect.CTX_RADIANCE if camera_side else connect.CTX_IMPORTANCE
-        _, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
+        bs, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
         out = dr.select(is_delta, ratio(w_delta), out)
+        if slides_after_delta(c):
+            wo = si.to_world(bs.wo)                   # with derivatives: si's position, frame and wi
+            slide(c, si, si_next, wo, active & is_delta & hit)
+            out = out * env_direction_ratio(c, si, wo, active & is_delta & ~hit)
     return mi.Spectrum(dr.select(active, out, 1.0))
+
+
+_SLIDING = ('p', 'n', 'uv', 't', 'dp_du', 'dp_dv', 'dn_du', 'dn_dv')
+
+
+def slide(c, si, si_next, wo, active):
+    """The vertex after a delta vertex ``si`` (``wo``: its outgoing direction, with derivatives)
+    as the intersection of that ray: where a neighbour of the delta vertex moves, the delta
+    direction turns and the next vertex slides over its surface (a material point would break
+    the law of reflection or refraction). Changes ``si_next`` in place, derivatives only: its
+    values stay those of the traced hit (where the re-traced ray finds another primitive, as it
+    may at an edge, the hit keeps its material-point derivative)."""
+    ray = si.spawn_ray(wo)
+    hit = c.scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+    same = active & hit.is_valid() & (hit.prim_index == si_next.prim_index) & (hit.shape == si_next.shape)
+    for name in _SLIDING:
+        old = getattr(si_next, name)
+        setattr(si_next, name, dr.select(same, dr.replace_grad(old, getattr(hit, name)), old))
+    f_old, f_new = si_next.sh_frame, hit.sh_frame
+    si_next.sh_frame = mi.Frame3f(*(dr.select(same, dr.replace_grad(getattr(f_old, a), getattr(f_new, a)),
+                                              getattr(f_old, a)) for a in ('s', 't', 'n')))
+
+
+def env_direction_ratio(c, si, wo, active):
+    """A ray that leaves the scene after a delta vertex: the environment's value in the delta
+    direction (which turns when a neighbour moves) over its value in the traced direction: 1 in
+    value, with the derivative of the direction only (the texels' own derivative cancels: the
+    image's environment term carries it)."""
+    env = c.scene.environment()
+    if env is None:
+        return 1.0
+    def value(d):
+        si_env = dr.zeros(mi.SurfaceInteraction3f)
+        si_env.wi, si_env.time, si_env.wavelengths = -d, si.time, si.wavelengths
+        return env.eval(si_env, active)
+    e_att, e_det = value(wo), value(dr.detach(wo))
+    ok = active & (dr.detach(e_det) > 0) & dr.isfinite(dr.detach(e_att))
+    q = dr.select(ok, e_att / dr.select(ok, e_det, 1.0), 1.0)
+    return type(q)(dr.replace_grad(dr.ones(type(q), dr.width(q)), q))
 
 
 def sample_bsdf(c, bsdf, mode, si, u1, u2, active):
@@ -176,6 +273,7 @@ def sample_emission(c, time, u_sel, u_pos, u_dir, active, wavelengths=None):
     the emitted value's derivative comes with ``emission_ratio`` at the first hit."""
     if not c.ad:
         return c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
+    check_technique(c)
     with dr.suspend_grad():
         e = c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
     if e.kinds.area is not False:
