@@ -2,8 +2,13 @@
 - s=0: the camera subpath hits an emitter;
 - s=1: emitter sampling from a camera vertex (Mitsuba's ``sample_emitter_direction``, small
   sphere emitters by bdpt's own cap sampling: endpoints.EmitterTable.sample_direct);
-- s>=2, t>=2: connection of a camera vertex to each stored light vertex, with a shadow ray.
-No connection is made at a delta vertex (a BSDF without a smooth component).
+- s>=2, t>=2: connection of a camera vertex to each stored light vertex, with a shadow ray;
+- merges (techniques vcm, vm): the camera vertex merged with the light vertices of the pass
+  within the merging radius (merge.py).
+No connection or merge is made at a delta vertex (a BSDF without a smooth component). With
+technique vm (progressive photon mapping) the subpath goes on only through delta lobes: it
+merges at its first vertex with a smooth component and ends where it samples a smooth lobe, so
+an emitter it hits was reached through delta vertices only.
 
 Each strategy is a function of its own: Dr.Jit's loops carry every variable assigned in their
 body as loop state, so the loops below assign only what really carries over between
@@ -173,13 +178,13 @@ class CameraTracer:
             j += 1
         return L
 
-    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err):
+    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err):
         """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
         is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        ray, beta, d_vcm, d_vc, active, is_delta = self.scatter(
-            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err)
+        ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
+            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err)
         si_next = gradients.intersect(c, ray, active)
         if c.ad:
             beta = beta * gradients.edge_ratio(c, True, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
@@ -187,9 +192,9 @@ class CameraTracer:
         # the edge's length between the vertices, not from the offset origin (rays.py): at grazing
         # angles the two differ by far more than rounding, and every density would follow t
         dist2 = dr.squared_norm(si_next.p - si.p)
-        return ray, si_next, beta, d_vcm, d_vc, active, dist2
+        return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
 
-    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err):
+    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err):
         """Sample the next direction (lobe and direction samples ``u1``, ``u2``); update
         throughput, MIS quantities and the roulette. Returns the next ray, the updated state
         and the delta mask (None in scenes without delta lobes)."""
@@ -205,17 +210,22 @@ class CameraTracer:
         else:
             is_delta = None                           # no delta lobe in the scene: not traced
             pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active, c.diffuse)
-        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, dr.abs(dr.dot(si.n, wo_world)),
-                                       bs.pdf, pdf_rev_w, is_delta)
+        cos_out = dr.abs(dr.dot(si.n, wo_world))
+        if c.mis.mis_merges:
+            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
+        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
+        if c.strategies.ppm:        # vm: only delta lobes go on (a smooth one was merged)
+            active &= is_delta if is_delta is not None else False
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
         ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)
-        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
+        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, d_vm, active, is_delta
 
     # ------------------------------------------------------------------ walk
     @dr.syntax
-    def trace(self, sampler, n, spp_pass, pixel_start, film, store, u_wavelength=None):
+    def trace(self, sampler, n, spp_pass, pixel_start, film, store, u_wavelength=None, merger=None):
         """``u_wavelength``: the samples' wavelength samples in spectral variants (the light
-        subpaths were given the wavelengths they choose), else None."""
+        subpaths were given the wavelengths they choose), else None. ``merger``: merge.Merger
+        of the pass (techniques vcm and vm), else None."""
         c = self.ctx
         mis = c.mis
         max_edges = c.max_depth_edges
@@ -239,6 +249,7 @@ class CameraTracer:
         # the first edge's length as every other strategy measures it (from the lens point)
         dist2_cam = c.camera.first_edge_dist2(ray, si.p)
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
+        d_vm = dr.zeros(mi.Float, n)                  # [VCM (31)-(33)] no merge behind the camera
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
 
@@ -261,10 +272,14 @@ class CameraTracer:
             if dr.hint(c.strategies.trace_connect, mode='scalar'):
                 L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos, err)
 
+            # ---------------- merges with the light vertices within the radius ----------------
+            if dr.hint(c.strategies.trace_merge, mode='scalar'):
+                L += merger.gather(si, bsdf, depth, beta, d_vcm, d_vm, smooth)
+
             # ---------------- continue the walk ----------------
             prev = mi.Interaction3f(si)
-            ray, si, beta, d_vcm, d_vc, active, dist2 = self.advance(
-                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, active, err)
+            ray, si, beta, d_vcm, d_vc, d_vm, active, dist2 = self.advance(
+                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
             if dr.hint(c.strategies.trace_env, mode='scalar'):
@@ -272,6 +287,8 @@ class CameraTracer:
                                        active & ~si.is_valid(), film_pos)
             active &= si.is_valid()
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
+            if dr.hint(mis.mis_merges, mode='scalar'):
+                d_vm = mis.vm_on_hit(d_vm, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
 
         film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths, aov_values)

@@ -18,8 +18,9 @@ from .camera_path import CameraTracer
 from .context import Context
 from .film import FilmAccumulator
 from .light_path import LightTracer
+from .merge import Merger, PhotonGrid, merge_radius
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, RenderHooks, caused_by_interrupt, count_passes,
-                     light_capacity, pass_seed, plan_passes)
+                     light_capacity, memory_budget, pass_seed, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 from .store import LightStore
@@ -46,6 +47,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.aov_channels = P.aov_channel_names(P.parse_aovs(s['aovs']))   # the film's extra channels
         self.strategy_images = None     # after a render with strategy_images: the layers (dict)
         self.hooks = RenderHooks()      # progress and stopping between passes (passes.RenderHooks)
+        self.merge_iteration = 0        # vcm, vm: passes merged so far, over every render (merge.py)
+        self.last_merge_radius = None   # the last pass's merging radius (world units)
         self.last_render_info = {}
 
     # ------------------------------------------------------------------ setup
@@ -58,6 +61,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
 
     def bytes_per_sample(self, ctx: Context) -> int:
         return BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
+
+    def pass_budget(self, ctx: Context, n_pixels: int):
+        """The parameter samples_per_pass; for vcm and vm, when it is automatic, one sample per
+        pixel a pass (one progressive iteration: the radius shrinks from pass to pass)."""
+        if self.samples_per_pass is None and ctx.strategies.trace_merge:
+            fit = max(memory_budget() // self.bytes_per_sample(ctx), 1)
+            return min(n_pixels, fit)
+        return self.samples_per_pass
 
     # ------------------------------------------------------------------ render
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -91,7 +102,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         returns (samples done, interrupted, light-vertex levels used)."""
         total = spp * n_pixels
         samples_done, levels_used = 0, 0
-        plan = plan_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.samples_per_pass)
+        plan = plan_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.pass_budget(ctx, n_pixels))
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(plan):
             if samples_done > 0 and self.hooks.stop():
                 return samples_done, True, levels_used
@@ -120,13 +131,21 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # emitters would draw their own in sample_ray): the sensor's, as its sample_ray does
             u_wl = sampler.next_1d()
             spectral = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
-        store = None
+        store, merger, radius = None, None, None
+        if ctx.strategies.trace_merge:
+            self.merge_iteration += 1
+            s = self.settings
+            radius = merge_radius(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration)
+            ctx.mis.set_radius(dr.opaque(mi.Float, dr.pi * radius * radius * n))   # eta = pi r^2 N
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
             store = LightStore(n=n, capacity=cap, record=ctx.record) if cap > 0 else None
             LightTracer(ctx).trace(sampler, n, acc, store, spectral)
+        if ctx.strategies.trace_merge:
+            merger = Merger(ctx, PhotonGrid(ctx.scene, store, radius))
+            self.last_merge_radius = radius
         if ctx.strategies.camera_pass:
-            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store, u_wl)
+            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store, u_wl, merger)
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
         if ctx.layers is not None:
             dr.eval(ctx.layers.buf)
@@ -137,7 +156,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {
             'strategies': ctx.strategies.traced(),
-            'passes': count_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.samples_per_pass),
+            'passes': count_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.pass_budget(ctx, n_pixels)),
             'spp': spp,
             'samples': samples_done,
             'interrupted': interrupted,
@@ -150,6 +169,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
+        if ctx.strategies.trace_merge:
+            info['merge_iteration'] = self.merge_iteration
+            info['merge_radius'] = self.last_merge_radius
         return info
 
     # ------------------------------------------------------------------ derivatives
@@ -181,6 +203,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if spp == 0:
             spp = sensor.sampler().sample_count()
         check_scene(scene, sensor)
+        if self.technique in ('vcm', 'vm'):
+            raise NotImplementedError(
+                f"bdpt: technique '{self.technique}' (vertex merging) is not differentiable here: the "
+                "merging kernel's derivatives (with respect to positions inside the radius) are not "
+                "implemented; differentiate with technique 'bdpt', 'pt' or 'lt'")
         geometry = bool(geometry_keys(params))
         if geometry and self.technique == 'lt':
             raise NotImplementedError(

@@ -41,6 +41,7 @@ class LightTracer:
                                       spectral[1] if spectral is not None else 1.0)
 
         d_vc = c.mis.light_init(e.pdf_emit_w, e.cos_e, e.kinds.delta)
+        d_vm = c.mis.vm_init_light(d_vc) if c.mis.mis_merges else 0.0
         active &= c.max_depth_edges >= 2
         si = gradients.intersect(c, e.ray, active)
         if c.ad:
@@ -56,8 +57,9 @@ class LightTracer:
         cos_hit = dr.abs(dr.dot(si.n, e.ray.d))
         dist2 = c.emitters.first_edge_dist2(e, si)
         d_vcm, d_vc = c.mis.light_first_hit(d_vc, e.pdf_emit_w, pdf_direct, dist2, cos_hit)
+        d_vm = c.mis.vm_on_hit(d_vm, cos_hit) if c.mis.mis_merges else dr.zeros(mi.Float, n)
         depth = dr.full(mi.UInt32, 1, n)
-        return active, si, beta, d_vcm, d_vc, depth
+        return active, si, beta, d_vcm, d_vc, d_vm, depth
 
     def splat_emitter_vertex(self, u, e, film, active, wl_weight=1.0):
         """s=1, t=1: the emitter vertex y0 connected to the camera (``wl_weight``: the
@@ -90,13 +92,13 @@ class LightTracer:
     def trace(self, sampler, n, film, store, spectral=None):
         """Trace N light subpaths; splat t=1 strategies; fill ``store`` (or None)."""
         c = self.ctx
-        active, si, beta, d_vcm, d_vc, depth = self.start(sampler, n, film, spectral)
+        active, si, beta, d_vcm, d_vc, d_vm, depth = self.start(sampler, n, film, spectral)
         beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
         count = dr.zeros(mi.UInt32, n)
         while True:
-            active, si, beta, d_vcm, d_vc, depth, count = self.walk(
-                sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count)
+            active, si, beta, d_vcm, d_vc, d_vm, depth, count = self.walk(
+                sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, depth, count)
             if store is None:
                 break
             store.count = count
@@ -125,21 +127,21 @@ class LightTracer:
         if c.layers is not None:
             c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
-    def advance(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+    def advance(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active):
         """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
         is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        ray, beta, d_vcm, d_vc, active, is_delta = self.scatter(
-            sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+        ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
+            sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active)
         si_next = gradients.intersect(c, ray, active)
         if c.ad:
             beta = beta * gradients.edge_ratio(c, False, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
             si_next = gradients.attach_wi(c, si_next, si.p)
         dist2 = dr.squared_norm(si_next.p - si.p)      # between the vertices (as camera_path.advance)
-        return ray, si_next, beta, d_vcm, d_vc, active, dist2
+        return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
 
-    def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active):
+    def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active):
         """Sample the next direction in importance mode (the adjoint BSDF; lobe and direction
         samples ``u1``, ``u2``); update throughput, MIS quantities and the roulette. Returns the
         next ray, the updated state and the delta mask (None without delta lobes)."""
@@ -167,14 +169,16 @@ class LightTracer:
         if c.ad:   # the factor without derivatives: the edge's derivative comes with edge_ratio
             beta = mi.Spectrum(beta_in * dr.detach(beta * safe_div(1.0, dr.detach(beta_in))))
         cos_out = dr.abs(dr.dot(si.n, wo_world))
+        if c.mis.mis_merges:
+            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
         ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)
-        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, active, is_delta
+        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, d_vm, active, is_delta
 
     @dr.syntax
-    def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, depth, count):
+    def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, depth, count):
         c = self.ctx
         max_edges = c.max_depth_edges
         store_on = store is not None
@@ -185,6 +189,9 @@ class LightTracer:
         make_record = store.record.make if store_on else None
         store_record = store.record.store if store_on else None
         pausing = store_on and c.unbounded     # bounded storage is sized to never fill
+        # a stored vertex is followed by an edge and a camera vertex (connections) or by a camera
+        # vertex at the same place (merges)
+        store_edges = 1 if c.strategies.trace_merge else 2
         cap_eff = store.capacity if pausing else 0xFFFFFFFF
         while dr.hint(active & (count < cap_eff), label='bdpt_light_subpath', exclude=[st_v]):
             bsdf = si.bsdf()
@@ -193,8 +200,9 @@ class LightTracer:
 
             # ---------------- store y_depth for connections (s >= 2, t >= 2) ----------------
             if dr.hint(store_on, mode='scalar'):
-                do_store = active & smooth & (depth + 2 <= max_edges)
-                store_record(st_v, make_record(si, err, bsdf, beta, d_vcm, d_vc, depth), slot_of(count, idx), do_store)
+                do_store = active & smooth & (depth + store_edges <= max_edges)
+                store_record(st_v, make_record(si, err, bsdf, beta, d_vcm, d_vc, depth, d_vm), slot_of(count, idx),
+                             do_store)
                 count[do_store] += 1
 
             # ---------------- t = 1: connect y_depth to the camera ----------------
@@ -204,11 +212,13 @@ class LightTracer:
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
-            ray, si, beta, d_vcm, d_vc, active, dist2 = self.advance(
-                sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, active)
+            ray, si, beta, d_vcm, d_vc, d_vm, active, dist2 = self.advance(
+                sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('light', active, si.is_valid())
             active &= si.is_valid()
             d_vcm, d_vc = c.mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
+            if dr.hint(c.mis.mis_merges, mode='scalar'):
+                d_vm = c.mis.vm_on_hit(d_vm, dr.abs(dr.dot(si.n, ray.d)))
             depth += 1
-        return active, si, beta, d_vcm, d_vc, depth, count
+        return active, si, beta, d_vcm, d_vc, d_vm, depth, count

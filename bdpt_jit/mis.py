@@ -32,6 +32,16 @@ Conventions for the strategies (s light vertices, t camera vertices, endpoints c
   is why the light subpath evaluates it at its first hit;
 - s=1, t=1 splats the light subpath's first vertex y0 (its density: emission position).
 - Russian roulette is left out of all densities (a valid choice: the weights still sum to 1).
+
+Vertex merging (technique ``vcm``) adds one strategy per non-delta interior vertex: the camera
+vertex merged with a light vertex of any light subpath of the pass within the radius r
+(merge.py). Its density relative to the connection that ends the light subpath at the same
+vertex is eta = pi r^2 N (N light subpaths). Tags ``[VCM (N)]`` are equation numbers of
+Georgiev, Krivanek, Davidovic and Slusallek, "Implementing Vertex Connection and Merging"
+(technical report, 2012), whose third running quantity this code calls ``d_vm``; the merging
+terms enter the connection weights through ``vm_factor`` = h(eta) and the merging weights
+through ``vc_factor`` = h(1/eta) (0 for a family the technique does not use). Technique ``vm``
+(progressive photon mapping) needs no weights: its strategies are a partition (strategies.py).
 """
 
 import drjit as dr
@@ -61,6 +71,17 @@ class MIS:
         self.kind = kind
         self.s = strategies
         self.detached = detached      # weights without derivatives (gradients.py)
+        self.vm_factor = 0.0          # h(eta): set per pass by set_radius (merges)
+        self.vc_factor = 0.0          # h(1/eta)
+        self.mis_merges = strategies.merges and not strategies.ppm
+
+    def set_radius(self, eta):
+        """The pass's eta = pi r^2 N (an opaque mi.Float: changing it recompiles nothing)."""
+        if not self.mis_merges:
+            return
+        self.vm_factor = self.h(eta)                                        # [VCM (20)] n_VM = N
+        has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
+        self.vc_factor = self.h(1.0 / eta) if has_vc else 0.0               # [VCM (20)] n_VC = 1
 
     # ------------------------------------------------------------------ heuristic
     def h(self, x):
@@ -115,7 +136,7 @@ class MIS:
         outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal).
         ``is_delta=None``: the scene has no delta lobe, and the delta case is not traced."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
-        d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm)  # [eq. 21, 22] vcm_i
+        d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm + self.vm_factor)  # [eq. 21, 22] vcm_i, [VCM (35)]
         d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
         if is_delta is None:
             return d_vcm_smooth, d_vc_smooth
@@ -126,6 +147,26 @@ class MIS:
         return (dr.select(is_delta, d_vcm_delta, d_vcm_smooth),
                 dr.select(is_delta, d_vc_delta, d_vc_smooth))
 
+    # ------------------------------------------------------------------ merging recursion
+    # d_vm: the merging strategies (and, through vc_factor, the connections) further back,
+    # relative to merging at the current vertex. Used only with mis_merges.
+    def vm_init_light(self, d_vc):
+        """d_vm at the light vertex y0, from its d_vc (light_init)."""
+        return d_vc * self.vc_factor                        # [VCM (33)]
+
+    def vm_on_hit(self, d_vm, cos_hit):
+        return d_vm / self.h(cos_hit)                        # [VCM (33), (36)] area measure at the hit
+
+    def vm_on_scatter(self, d_vm, d_vcm, cos_out, pdf_fwd_w, pdf_rev_w, is_delta):
+        """d_vm after sampling the next direction; ``d_vcm``: the value before this scatter
+        (the other arguments as on_scatter's)."""
+        inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
+        d_vm_smooth = self.h(cos_out * inv_fwd) * (d_vm * self.h(pdf_rev_w)
+                                                   + d_vcm * self.vc_factor + 1.0)   # [VCM (36)]
+        if is_delta is None:
+            return d_vm_smooth
+        return dr.select(is_delta, d_vm * self.h(cos_out), d_vm_smooth)              # [VCM (36)] delta
+
     # ------------------------------------------------------------------ weights
     def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w):
         """Camera subpath hits an emitter (s=0). ``pdf_direct_a``: emitter sampling density of the
@@ -133,7 +174,9 @@ class MIS:
         ``pdf_emit_w``: light subpath's density of emitting towards the previous vertex."""
         if not self.s.hits:
             return 0.0 * d_vcm
-        w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1
+        if self.s.ppm:
+            return 1.0 + 0.0 * d_vcm                        # vm: the kernel counts delta chains only
+        w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1, [VCM (43)]
         if self.s.connections:
             w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
         return _finite(1.0 / (1.0 + w_camera))              # [eq. 20] w_light = 0
@@ -153,8 +196,8 @@ class MIS:
             w_light = dr.select(emitter_is_delta, 0.0, w_light)                    # [eq. 20] p_0 = 0
         if not self.s.connections:
             return _finite(1.0 / (w_light + 1.0))           # [eq. 20] w_camera = 0
-        w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22]
-                    * (d_vcm + d_vc * self.h(pdf_rev_w)))
+        w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22], [VCM (45)]
+                    * (self.vm_factor + d_vcm + d_vc * self.h(pdf_rev_w)))
         return _finite(1.0 / (w_light + 1.0 + w_camera))    # [eq. 20]
 
     def weight_connect(self, l_vcm, l_vc, c_vcm, c_vc, pdf_cam_to_light_a, pdf_light_to_cam_a,
@@ -166,8 +209,8 @@ class MIS:
         ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y."""
         if not self.s.connections:
             return 0.0 * l_vcm
-        w_light = self.h(pdf_cam_to_light_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))    # [eq. 21, 22]
-        w_camera = self.h(pdf_light_to_cam_a) * (c_vcm + c_vc * self.h(pdf_cam_rev_w))     # [eq. 21, 22]
+        w_light = self.h(pdf_cam_to_light_a) * (self.vm_factor + l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22], [VCM (40)]
+        w_camera = self.h(pdf_light_to_cam_a) * (self.vm_factor + c_vcm + c_vc * self.h(pdf_cam_rev_w))   # [eq. 21, 22], [VCM (41)]
         return _finite(1.0 / (w_light + 1.0 + w_camera))                                    # [eq. 20]
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
@@ -177,7 +220,7 @@ class MIS:
             return 0.0 * l_vcm
         if not (self.s.hits or self.s.direct or self.s.connections):
             return 1.0 + 0.0 * l_vcm                        # light tracing alone (lt)
-        w_light = self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
+        w_light = self.h(pdf_cam_a) * (self.vm_factor + l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22], [VCM (46)]
         return _finite(1.0 / (w_light + 1.0))                                    # [eq. 20] w_camera = 0
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):
@@ -188,3 +231,16 @@ class MIS:
         if not self.s.hits:
             return 1.0 + 0.0 * pdf_cam_a                    # light tracing alone (lt)
         return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
+
+    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w):
+        """Merge of camera vertex z with a light vertex y within the radius (merge.py).
+        ``pdf_cam_dir_w``: z's BSDF density of y's incoming direction (the camera subpath going
+        on where the light subpath came from); ``pdf_cam_rev_w``: z's density of its own incoming
+        direction given y's (the light subpath going on where the camera subpath came from)."""
+        if self.s.ppm:
+            return 1.0 + 0.0 * l_vcm                        # vm: a partition, no MIS
+        if not self.mis_merges:
+            return 0.0 * l_vcm
+        w_light = l_vcm * self.vc_factor + l_vm * self.h(pdf_cam_dir_w)    # [VCM (38)]
+        w_camera = c_vcm * self.vc_factor + c_vm * self.h(pdf_cam_rev_w)   # [VCM (39)]
+        return _finite(1.0 / (w_light + 1.0 + w_camera))                   # [VCM (37)]

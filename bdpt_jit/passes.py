@@ -65,7 +65,11 @@ def pass_seed(seed, i):
 
 
 def light_capacity(strategies, max_depth_edges, unbounded):
-    """Levels of light-vertex storage a pass allocates first (store.LightStore)."""
+    """Levels of light-vertex storage a pass allocates first (store.LightStore): vertices
+    y_1 .. y_{max-2} for connections (a camera vertex and an edge follow), y_1 .. y_{max-1}
+    for merges (a camera vertex at the same place follows)."""
+    if strategies.trace_merge:
+        return 8 if unbounded else max_depth_edges - 1
     if not strategies.trace_connect:
         return 0
     return 8 if unbounded else max_depth_edges - 2

@@ -29,6 +29,7 @@ FIELDS = {
     'beta': mi.Spectrum,      # Le / p up to y_j, importance transport (3, 1 or 4 words)
     'd_vcm': mi.Float,        # MIS quantities (mis.py)
     'd_vc': mi.Float,
+    'd_vm': mi.Float,         # merging MIS quantity     (technique vcm only)
     'depth': mi.UInt32,       # j: edges from y0         (absent: level + 1, every vertex stored)
 }
 
@@ -45,12 +46,13 @@ class VertexRecord:
     DRJIT_STRUCT = {}
 
     @classmethod
-    def make(cls, si, err, bsdf, beta, d_vcm, d_vc, depth):
+    def make(cls, si, err, bsdf, beta, d_vcm, d_vc, depth, d_vm=None):
         v = cls()
+        d_vm = 0.0 * d_vc if d_vm is None else d_vm
         src = {'p': si.p, 'err': err, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
                'wi': si.wi if 's' in cls.DRJIT_STRUCT else si.to_world(si.wi),
                'shape': si.shape, 'bsdf': bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
-               'dp_dv': si.dp_dv, 'beta': beta, 'd_vcm': d_vcm, 'd_vc': d_vc, 'depth': depth}
+               'dp_dv': si.dp_dv, 'beta': beta, 'd_vcm': d_vcm, 'd_vc': d_vc, 'd_vm': d_vm, 'depth': depth}
         for k in cls.DRJIT_STRUCT:           # unused fields are never evaluated (lazy JIT)
             setattr(v, k, src[k])
         return v
@@ -162,10 +164,12 @@ def make_record_type(fields):
 StoredVertex = make_record_type(list(FIELDS))
 
 
-def record_type(needs):
+def record_type(needs, merging=False):
     """The record for a scene: ``needs`` (scene_check.VertexNeeds) says which optional fields
-    its BSDFs and shapes read."""
+    its BSDFs and shapes read; ``merging``: vertex merging with MIS (technique vcm) reads d_vm."""
     fields = ['p', 'err', 'n_s', 'wi', 'bsdf', 'beta', 'd_vcm', 'd_vc']
+    if merging:
+        fields.append('d_vm')
     if needs.geometric_normal:
         fields.append('n')
     if needs.tangent:

@@ -9,6 +9,12 @@ technique allows and the delta vertices do not forbid. The recursive weights, ob
 walking each subpath through mis.py exactly as the kernels do, must equal it (relative 1e-5),
 sum to 1 over the strategies, and be finite and in [0, 1].
 
+Technique ``vcm`` adds the merging strategies (mis.py, Georgiev's report): one per non-delta
+interior vertex x_i (1 <= i <= k-1), whose density is that of the connection ending the light
+subpath at x_i times the camera's density of x_i times eta = pi r^2 N (random per path); the
+brute force adds them to the sum, and their recursive weights (``weight_merge``) must be part of
+the partition.
+
 Paths start on each emitter kind (endpoints.py): area (a surface point), delta position
 (point/spot: discrete position, no s=0 and no s=1,t=1), delta direction (directional: a
 discrete direction, its first edge from a disk, per unit projected area) and environment
@@ -63,6 +69,7 @@ def random_paths(rng, k, delta_prob, emitter='area'):
         pdir_e=rng.uniform(0.01, 1.0, size=M) / np.pi,     # emitted direction
         p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
+        eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
         emitter=emitter,
     )
 
@@ -80,6 +87,8 @@ def allowed(technique, k, s, P):
         return np.zeros(M, bool)           # a delta emitter cannot be hit
     if P['emitter'] == 'dir_area' and s == 1:
         return np.zeros(M, bool)           # nor can emitter sampling find a directional surface
+    if technique == 'vm':
+        return np.zeros(M, bool)           # (the ppm partition is not a weighting: test_merging)
     if technique == 'pt' and not (s == 0 or (s == 1 and t >= 2)):
         return np.zeros(M, bool)
     if technique == 'lt' and t != 1:
@@ -91,11 +100,25 @@ def allowed(technique, k, s, P):
     return ok
 
 
+def merge_allowed(k, i, P):
+    """Merging at x_i: an interior vertex (a light vertex y_i, i >= 1, met by a camera vertex
+    z_{k-i}, k-i >= 1) with a smooth BSDF."""
+    return ~P['delta'][:, i] if 1 <= i <= k - 1 else np.zeros(M, bool)
+
+
+def camera_density(P, i):
+    """The camera subpath's density of x_i per unit area (from x_{i+1}; the pinhole's from x_k)."""
+    k = P['k']
+    if i == k - 1:
+        return P['p_cam_w'] * P['cosA'][:, k - 1] / P['d2'][:, k - 1]
+    return P['pE'][:, i + 1] * P['cosA'][:, i] / P['d2'][:, i]
+
+
 def brute_force(kind, technique, P, p_lens=None):
     k = P['k']
     d2, cosA, cosB, pL, pE = P['d2'], P['cosA'], P['cosB'], P['pL'], P['pE']
     beta = {'power': 2.0, 'balance': 1.0}.get(kind)
-    dens = []
+    dens, raw = [], []
     for s in range(k + 1):
         t = k + 1 - s
         p = np.ones(M)
@@ -127,7 +150,11 @@ def brute_force(kind, technique, P, p_lens=None):
                 p = p * pE[:, i + 1] * cosA[:, i] / d2[:, i]
         if p_lens is not None:                              # thin lens: z0 sampled on the lens
             p = p * p_lens
+        raw.append(p)
         dens.append(np.where(allowed(technique, k, s, P), p, 0.0))
+    if technique == 'vcm':
+        dens += [np.where(merge_allowed(k, i, P), raw[i + 1] * camera_density(P, i) * P['eta'], 0.0)
+                 for i in range(1, k)]
     dens = np.array(dens)
     if kind == 'uniform':
         hp = (dens > 0).astype(float)
@@ -158,30 +185,42 @@ def recursive(kind, technique, P):
         pdf_emit_w = F(P['pA_light0'] * P['pdir_e'] * P['p_disk'])
     cos_e0 = np.ones(M) if infinite or ek == 'delta_pos' else cosA[:, 0]
 
-    def light_state(last):                                   # at x_last (last >= 1)
+    mis.set_radius(F(P['eta']))
+
+    def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
         d_vc = mis.light_init(pdf_emit_w, F(cos_e0), B(np.full(M, delta)))
+        d_vm = mis.vm_init_light(d_vc)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
         p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
         d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(p_direct), F(d2_0), F(cosB[:, 0]))
+        d_vm = mis.vm_on_hit(d_vm, F(cosB[:, 0]))
         for i in range(1, last):
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
+            args = (F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
+            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args)
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args)
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
-        return d_vcm, d_vc
+            d_vm = mis.vm_on_hit(d_vm, F(cosB[:, i]))
+        return d_vcm, d_vc, d_vm
 
-    def camera_state(last):                                  # at x_last (last <= k-1)
+    def camera_state(last):                                  # at x_last (last <= k-1): (d_vcm, d_vc, d_vm)
         d_vcm, d_vc = mis.camera_init(F(P['p_cam_w']))
+        d_vm = F(np.zeros(M))
         d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, k - 1]), F(cosA[:, k - 1]))
+        d_vm = mis.vm_on_hit(d_vm, F(cosA[:, k - 1]))
         for i in range(k - 1, last, -1):
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
+            args = (F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
+            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args)
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args)
             if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
                 d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
-        return d_vcm, d_vc
+                d_vm = mis.vm_on_hit(d_vm, F(cosA[:, i - 1]))
+        return d_vcm, d_vc, d_vm
 
     out = []
     for s in range(k + 1):
         t = k + 1 - s
         if s == 0:
-            c_vcm, c_vc = camera_state(0)
+            c_vcm, c_vc, _ = camera_state(0)
             if ek == 'env':
                 w = mis.weight_s0(c_vcm, c_vc, F(P['p_direct_a']), pdf_emit_w) if k > 1 else F(np.ones(M))
             elif delta:
@@ -194,7 +233,7 @@ def recursive(kind, technique, P):
         elif s == 1 and t == 1:
             w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0]), F(P['pA_light0']))
         elif s == 1:
-            c_vcm, c_vc = camera_state(1)
+            c_vcm, c_vc, _ = camera_state(1)
             if ek == 'area':
                 pdf_direct_w, cos_e = P['p_direct_a'] * d2[:, 0] / cosA[:, 0], cosA[:, 0]
             elif ek == 'delta_pos':
@@ -204,11 +243,11 @@ def recursive(kind, technique, P):
             w = mis.weight_s1(c_vcm, c_vc, F(pE[:, 1]), F(pdf_direct_w), pdf_emit_w,
                               F(cos_e), F(cosB[:, 0]), F(pL[:, 1]), emitter_is_delta=B(np.full(M, delta)))
         elif t == 1:
-            l_vcm, l_vc = light_state(k - 1)
+            l_vcm, l_vc, _ = light_state(k - 1)
             w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]), F(pE[:, k - 1]))
         else:
-            l_vcm, l_vc = light_state(s - 1)
-            c_vcm, c_vc = camera_state(s)
+            l_vcm, l_vc, _ = light_state(s - 1)
+            c_vcm, c_vc, _ = camera_state(s)
             w = mis.weight_connect(l_vcm, l_vc, c_vcm, c_vc,
                                    F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1]),
                                    F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1]),
@@ -218,12 +257,18 @@ def recursive(kind, technique, P):
         if not reachable and t == 1:
             assert np.all(w == 0), f'a light-tracing weight (s={s}, t=1) for an unreachable camera'
         out.append(np.where(allowed(technique, k, s, P), w, 0.0))
+    if technique == 'vcm':
+        for i in range(1, k):                                # merging at x_i
+            l_vcm, _, l_vm = light_state(i)
+            c_vcm, _, c_vm = camera_state(i)
+            w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i])), dtype=np.float64)
+            out.append(np.where(merge_allowed(k, i, P), w, 0.0))
     return np.array(out)
 
 
 @pytest.mark.parametrize('camera', ['pinhole', 'thinlens', 'delta'])
 @pytest.mark.parametrize('emitter', KINDS)
-@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt', 'vcm'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', list(range(1, 11)))
 def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
@@ -239,7 +284,8 @@ def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
     w_ref = brute_force(kind, technique, P, p_lens)
     assert np.all(np.isfinite(w_rec))
     assert np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
-    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]).any(axis=0)
+    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]
+                            + ([merge_allowed(k, i, P) for i in range(1, k)] if technique == 'vcm' else [])).any(axis=0)
     total = w_rec.sum(axis=0)
     np.testing.assert_allclose(total[any_strategy], 1.0, rtol=1e-5)
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)

@@ -23,7 +23,8 @@ def test_registered_for_xml_and_dict():
                           'rr_depth': 3, 'hide_emitters': True, 'samples_per_pass': 1000})
     assert integ.settings == {'max_depth': 4, 'mis': 'balance', 'technique': 'pt', 'rr_depth': 3,
                               'hide_emitters': True, 'samples_per_pass': 1000,
-                              'strategy_images': False, 'statistics': False, 'aovs': ''}
+                              'strategy_images': False, 'statistics': False, 'aovs': '',
+                              'radius': 0.005, 'radius_alpha': 0.75}
     scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
     assert isinstance(scene.integrator(), bdpt_jit.BDPTIntegrator)
     xml = mi.load_string('<scene version="3.0.0"><integrator type="bdpt"><string name="mis" value="uniform"/>'
@@ -41,7 +42,7 @@ def test_defaults_come_from_the_table():
 
 @pytest.mark.parametrize('params,needle', [
     ({'mis': 'powr'}, "'mis' must be one of power, balance, uniform"),
-    ({'technique': 'vcm'}, "'technique' must be one of bdpt, pt, lt"),
+    ({'technique': 'sppm'}, "'technique' must be one of bdpt, pt, lt, vcm, vm"),
     ({'max_depth': -2}, "'max_depth' must be >= -1"),
     ({'rr_depth': 0}, "'rr_depth' must be >= 1"),
     ({'samples_per_pass': 0}, "'samples_per_pass' must be >= 1"),

@@ -115,7 +115,7 @@ def test_light_vertex_record_drops_only_unread_fields(variant, monkeypatch):
     fields = integ.last_render_info['light_vertex_fields']
     for k, need in want.items():
         assert (k in fields) == need, f'{variant}: field {k} stored={k in fields}, needed={need} ({fields})'
-    monkeypatch.setattr(context_module, 'record_type', lambda needs: StoredVertex)
+    monkeypatch.setattr(context_module, 'record_type', lambda needs, **kw: StoredVertex)
     b = np.array(mi.render(scene, integrator=integ, spp=16, seed=4))
     assert integ.last_render_info['light_vertex_fields'] == list(StoredVertex.DRJIT_STRUCT)
     assert np.isfinite(a).all()
