@@ -3,7 +3,8 @@
 with fixed seeds and saves them; the statistical tests run here.
 
 - mono and spectral Cornell boxes (a textured area light in spectral) agree per pixel with
-  Mitsuba's `path`, for bdpt, pt and lt, power and uniform weights;
+  Mitsuba's `path`, for bdpt, pt and lt, power and uniform weights (and vcm in mono: vertex
+  merging is refused in spectral variants, test_merging);
 - a narrow-band test that fails if a sample's light and camera subpaths carried different
   wavelengths: the light emits only at 440-460 nm, the walls reflect only at 640-660 nm, so
   every path with a bounce carries exactly zero; independent wavelengths would pair light of
@@ -77,6 +78,7 @@ CASES = [
     ('llvm_ad_mono', 'box', 'pt', 'power'),
     ('llvm_ad_mono', 'box', 'lt', 'power'),
     ('llvm_ad_mono', 'box', 'bdpt', 'uniform'),
+    ('llvm_ad_mono', 'box', 'vcm', 'power'),
     ('llvm_ad_spectral', 'textured', 'bdpt', 'power'),
     ('llvm_ad_spectral', 'textured', 'bdpt', 'uniform'),
     ('llvm_ad_spectral', 'textured', 'pt', 'power'),
@@ -89,8 +91,10 @@ def test_agrees_with_mitsuba_in_other_variants(tmp_path, variant, case, techniqu
     # (Mitsuba's ptracer cannot sample a textured emitter's spectrum: `path` is the reference)
     ref = batches(tmp_path, variant, case, {'type': 'path', 'max_depth': 4}, 1024, n=16, seed0=10_000)
     spp = 1024 if mis == 'uniform' else 512 if technique == 'lt' else 256
-    mine = batches(tmp_path, variant, case, {'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'mis': mis},
-                   spp, n=16)
+    integ = {'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'mis': mis}
+    if technique == 'vcm':      # one pass of every sample (one merging iteration), a small radius
+        integ.update(radius=0.004, samples_per_pass=1 << 16)
+    mine = batches(tmp_path, variant, case, integ, spp, n=16)
     assert np.all(np.isfinite(mine))
     ok, msg = agreement(mine, ref, alpha=0.01)
     assert ok, f'{variant} {case} {technique}/{mis}: {msg}'
@@ -117,6 +121,18 @@ def test_polarized_variants_are_refused_with_the_reason():
             "try:\n    mi.load_dict({'type': 'bdpt'})\nexcept Exception as e:\n    print('REFUSED', e)\n")
     r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
     assert 'REFUSED' in r.stdout and 'polarized' in r.stdout, r.stdout + r.stderr[-2000:]
+
+
+def test_merging_is_refused_in_spectral_variants_with_the_reason():
+    """A light vertex carries its own wavelengths; merging would pair it with camera vertices of
+    other wavelengths: vcm is refused when the render starts, naming the parameter."""
+    code = ("import mitsuba as mi; mi.set_variant('llvm_ad_spectral'); import bdpt_jit\n"
+            "d = mi.cornell_box(); d['sensor']['film'].update(width=8, height=8)\n"
+            "try:\n    mi.load_dict({'type': 'bdpt', 'technique': 'vcm'}).render(mi.load_dict(d), spp=1)\n"
+            "except Exception as e:\n    print('REFUSED', e)\n")
+    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
+    assert 'REFUSED' in r.stdout and "technique 'vcm'" in r.stdout and 'wavelengths' in r.stdout, \
+        r.stdout + r.stderr[-2000:]
 
 
 GRAD = r'''
