@@ -25,6 +25,7 @@ from .gradients import check_parameters, geometry_keys
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 from .store import LightStore
 
+MERGE_PASS_PATHS = 1 << 18      # vcm, vm: light subpaths a pass gathers from, at least (pass_budget)
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
 
 
@@ -63,11 +64,16 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         return BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
 
     def pass_budget(self, ctx: Context, n_pixels: int):
-        """The parameter samples_per_pass; for vcm and vm, when it is automatic, one sample per
-        pixel a pass (one progressive iteration: the radius shrinks from pass to pass)."""
+        """The parameter samples_per_pass. For vcm and vm, when it is automatic: whole samples
+        per pixel adding up to at least MERGE_PASS_PATHS light subpaths (one sample per pixel at
+        512 x 512 and above, as SmallVCM's iterations), within the memory budget. Each pass is
+        one progressive iteration (its radius from merge.merge_radius); passes much smaller
+        than this spend their time tracing the kernels in Python (measured: 16 passes of a
+        64 x 64 image took 5x as long as one pass of the same samples)."""
         if self.samples_per_pass is None and ctx.strategies.trace_merge:
             fit = max(memory_budget() // self.bytes_per_sample(ctx), 1)
-            return min(n_pixels, fit)
+            want = -(-MERGE_PASS_PATHS // n_pixels) * n_pixels
+            return min(want, fit)
         return self.samples_per_pass
 
     # ------------------------------------------------------------------ render

@@ -50,8 +50,8 @@ class PhotonGrid:
 
     def __init__(self, scene, store, radius):
         n_slots = store.n * store.capacity
-        size = 1
-        while size < max(store.n, 1):
+        size = 1               # buckets: twice the slots, so that empty cells rarely share one
+        while size < max(2 * n_slots, 1):
             size *= 2
         bbox = scene.bbox()
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
@@ -127,8 +127,11 @@ class Merger:
         c, g = self.ctx, self.grid
         slot = dr.gather(mi.UInt32, g.slots, k, active)
         record = g.store.record
-        v = record.load(g.store.v, slot, active)
-        ok = active & (dr.squared_norm(v.p - si.p) <= g.radius2)
+        # the position first ('p' leads every record): ~4/5 of the candidates in the 8 cells lie
+        # outside the radius, and their masked-off lanes then read nothing more
+        first = dr.gather(mi.Vector4f, g.store.v, slot * record.packets(), active)
+        ok = active & (dr.squared_norm(mi.Point3f(first.x, first.y, first.z) - si.p) <= g.radius2)
+        v = record.load(g.store.v, slot, ok)
         level = slot // g.store.n_opaque
         ok &= v.depth_at(level) + depth <= c.max_depth_edges
         y = v.interaction(c.time, si.wavelengths)

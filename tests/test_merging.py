@@ -115,7 +115,7 @@ def test_vm_matches_the_blurred_irradiance(alpha):
     means = []
     for k in range(K):
         integ = mi.load_dict({'type': 'bdpt', 'technique': 'vm', 'max_depth': 2, 'radius': rel,
-                              'radius_alpha': alpha})
+                              'radius_alpha': alpha, 'samples_per_pass': RES * RES})   # a pass per spp
         img = assert_finite(mi.render(scene, integrator=integ, spp=spp, seed=100 + k))
         assert integ.last_render_info['passes'] == spp
         means.append(float(np.mean(img)))
@@ -204,8 +204,9 @@ def test_caustic_through_glass_matches_the_blurred_irradiance(technique):
         means = []
         for k in range(K):
             integ = mi.load_dict({'type': 'bdpt', 'technique': technique, 'max_depth': 4, 'radius': rel,
-                                  'radius_alpha': 0.5})
+                                  'radius_alpha': 0.5, 'samples_per_pass': RES * RES})
             img = assert_finite(mi.render(scene, integrator=integ, spp=spp, seed=300 + k))
+            assert integ.last_render_info['merge_iteration'] == spp
             means.append(float(np.mean(img)))
         got[spp], se[spp] = np.mean(means), np.std(means, ddof=1) / np.sqrt(K)
         radii = [r1 * i ** -0.25 for i in range(1, spp + 1)]
