@@ -18,8 +18,8 @@ def features(info):
     if not info:
         return []
     return [
-        ('light subpath pass', bool(info.get('light_pass')), 'needed by the light-tracing and connection strategies'),
-        ('camera subpath pass', bool(info.get('camera_pass')), 'needed by the s=0, s=1 and connection strategies'),
+        ('light subpath pass', bool(info.get('light_pass')), 'needed by the light-tracing, connection and merging strategies'),
+        ('camera subpath pass', bool(info.get('camera_pass')), 'needed by the s=0, s=1, connection and merging strategies'),
         ('delta (specular) BSDF handling', bool(info.get('delta_handling')), 'the scene has a BSDF with a delta lobe'),
     ]
 
