@@ -274,7 +274,7 @@ class CameraTracer:
 
             # ---------------- merges with the light vertices within the radius ----------------
             if dr.hint(c.strategies.trace_merge, mode='scalar'):
-                L += merger.gather(si, bsdf, depth, beta, d_vcm, d_vm, smooth)
+                L += merger.gather(idx, si, bsdf, depth, beta, d_vcm, d_vm, smooth)
 
             # ---------------- continue the walk ----------------
             prev = mi.Interaction3f(si)

@@ -18,14 +18,13 @@ from .camera_path import CameraTracer
 from .context import Context
 from .film import FilmAccumulator
 from .light_path import LightTracer
-from .merge import Merger, PhotonGrid, merge_radius
+from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, RenderHooks, caused_by_interrupt, count_passes,
-                     light_capacity, memory_budget, pass_seed, plan_passes)
+                     light_capacity, pass_seed, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 from .store import LightStore
 
-MERGE_PASS_PATHS = 1 << 18      # vcm, vm: light subpaths a pass gathers from, at least (pass_budget)
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
 
 
@@ -48,7 +47,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.aov_channels = P.aov_channel_names(P.parse_aovs(s['aovs']))   # the film's extra channels
         self.strategy_images = None     # after a render with strategy_images: the layers (dict)
         self.hooks = RenderHooks()      # progress and stopping between passes (passes.RenderHooks)
-        self.merge_iteration = 0        # vcm, vm: passes merged so far, over every render (merge.py)
+        self.merge_iteration = 0        # vcm, vm: iterations (samples per pixel) so far, over every render (merge.py)
         self.last_merge_radius = None   # the last pass's merging radius (world units)
         self.last_render_info = {}
 
@@ -62,19 +61,6 @@ class BDPTIntegrator(mi.SamplingIntegrator):
 
     def bytes_per_sample(self, ctx: Context) -> int:
         return BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
-
-    def pass_budget(self, ctx: Context, n_pixels: int):
-        """The parameter samples_per_pass. For vcm and vm, when it is automatic: whole samples
-        per pixel adding up to at least MERGE_PASS_PATHS light subpaths (one sample per pixel at
-        512 x 512 and above, as SmallVCM's iterations), within the memory budget. Each pass is
-        one progressive iteration (its radius from merge.merge_radius); passes much smaller
-        than this spend their time tracing the kernels in Python (measured: 16 passes of a
-        64 x 64 image took 5x as long as one pass of the same samples)."""
-        if self.samples_per_pass is None and ctx.strategies.trace_merge:
-            fit = max(memory_budget() // self.bytes_per_sample(ctx), 1)
-            want = -(-MERGE_PASS_PATHS // n_pixels) * n_pixels
-            return min(want, fit)
-        return self.samples_per_pass
 
     # ------------------------------------------------------------------ render
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -108,7 +94,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         returns (samples done, interrupted, light-vertex levels used)."""
         total = spp * n_pixels
         samples_done, levels_used = 0, 0
-        plan = plan_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.pass_budget(ctx, n_pixels))
+        plan = plan_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.samples_per_pass)
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(plan):
             if samples_done > 0 and self.hooks.stop():
                 return samples_done, True, levels_used
@@ -137,19 +123,20 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # emitters would draw their own in sample_ray): the sensor's, as its sample_ray does
             u_wl = sampler.next_1d()
             spectral = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
-        store, merger, radius = None, None, None
+        store, merger, schedule = None, None, None
         if ctx.strategies.trace_merge:
-            self.merge_iteration += 1
             s = self.settings
-            radius = merge_radius(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration)
-            ctx.mis.set_radius(dr.opaque(mi.Float, dr.pi * radius * radius * n))   # eta = pi r^2 N
+            schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
+                                     spp_pass, pixel_count)
+            self.merge_iteration += spp_pass
+            ctx.mis.set_radius(schedule.eta(dr.arange(mi.UInt32, n)))      # each sample's eta = pi r^2 N
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
             store = LightStore(n=n, capacity=cap, record=ctx.record) if cap > 0 else None
             LightTracer(ctx).trace(sampler, n, acc, store, spectral)
         if ctx.strategies.trace_merge:
-            merger = Merger(ctx, PhotonGrid(ctx.scene, store, radius))
-            self.last_merge_radius = radius
+            merger = Merger(ctx, PhotonGrid(ctx.scene, store, schedule))
+            self.last_merge_radius = schedule.r_last
         if ctx.strategies.camera_pass:
             CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store, u_wl, merger)
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
@@ -162,7 +149,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {
             'strategies': ctx.strategies.traced(),
-            'passes': count_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.pass_budget(ctx, n_pixels)),
+            'passes': count_passes(spp, n_pixels, self.bytes_per_sample(ctx), self.samples_per_pass),
             'spp': spp,
             'samples': samples_done,
             'interrupted': interrupted,

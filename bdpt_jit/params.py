@@ -59,9 +59,9 @@ PARAMS = (
           'sphere (SmallVCM uses 0.003 at 512x512; a larger radius is less noisy and more biased).',
           minimum=0.0, exclusive_minimum=True),
     Param('radius_alpha', float, 0.75,
-          'Progressive radius reduction of `vcm` and `vm`: pass i (counted over every render of this '
-          'integrator, from 1) merges within r_i = r_1 i^((alpha-1)/2) (Knaus and Zwicker 2011); 1 '
-          'keeps the radius fixed.',
+          'Progressive radius reduction of `vcm` and `vm`: iteration i (one sample per pixel, counted '
+          'over every render of this integrator, from 1) merges within r_i = r_1 i^((alpha-1)/2) '
+          '(Knaus and Zwicker 2011); 1 keeps the radius fixed.',
           minimum=0.0, maximum=1.0, exclusive_minimum=True),
     Param('hide_emitters', bool, False,
           'Hide directly visible emitters, as in Mitsuba\'s `path`.'),

@@ -104,8 +104,9 @@ def scene_radius(scene):
 
 @pytest.mark.parametrize('alpha', [pytest.param(1.0, marks=pytest.mark.slow), 0.75])
 def test_vm_matches_the_blurred_irradiance(alpha):
-    """Image mean of ``vm`` (max_depth 2: light -> plane -> camera) with ``spp`` passes of one
-    sample per pixel, over K renders by fresh integrators (each runs passes 1..spp): within 4
+    """Image mean of ``vm`` (max_depth 2: light -> plane -> camera) with ``spp`` iterations (one
+    pass: iteration j is sample j of every pixel, merge.MergeSchedule), over K renders by fresh
+    integrators (each runs iterations 1..spp): within 4
     standard errors of the blurred analytic mean for the schedule ``alpha``, while the sharp
     value (no blur) and the other schedule's value lie far outside."""
     scene = plane_scene()
@@ -115,9 +116,9 @@ def test_vm_matches_the_blurred_irradiance(alpha):
     means = []
     for k in range(K):
         integ = mi.load_dict({'type': 'bdpt', 'technique': 'vm', 'max_depth': 2, 'radius': rel,
-                              'radius_alpha': alpha, 'samples_per_pass': RES * RES})   # a pass per spp
+                              'radius_alpha': alpha})
         img = assert_finite(mi.render(scene, integrator=integ, spp=spp, seed=100 + k))
-        assert integ.last_render_info['passes'] == spp
+        assert integ.last_render_info['merge_iteration'] == spp
         means.append(float(np.mean(img)))
     means = np.array(means)
     m, se = means.mean(), means.std(ddof=1) / np.sqrt(K)
@@ -163,10 +164,10 @@ def test_closed_sphere(technique, mis, radius):
     a ball of radius r sees the surface's area pi r^2 (exact for a sphere, Archimedes; +1e-3 at
     r = 0.1 for this fine mesh), so ``vm`` has no bias here at any radius. ``vcm`` has one of
     its own: a merge's MIS weight is evaluated at the camera vertex for a light vertex up to r
-    away, so the weights of nearby paths only sum to one as r -> 0 (measured here: +0.15% at
-    r = 0.1, none visible at 0.05 within 0.014%). At r = 0.05 merges still carry much of the
-    weight (eta = pi r^2 N ~ 2): leaving the merging term out of the connections' recursion
-    (mis.on_scatter) moves the mean by +0.54% (38 sigma), a lost d_vm update or a wrong
+    away, so the weights of nearby paths only sum to one as r -> 0 (measured at 16x16: +0.15%
+    at r = 0.1, none visible at 0.05 within 0.014%). At r = 0.05 merges still carry much of the
+    weight (eta = pi r^2 N ~ 8): leaving the merging term out of the connections' recursion
+    (mis.on_scatter) moves the mean by +7% (over 100 sigma), a lost d_vm update or a wrong
     normalisation likewise."""
     from test_analytic import LE, sphere_mesh
     rho, max_depth = 0.8, 4
@@ -174,7 +175,7 @@ def test_closed_sphere(technique, mis, radius):
         'type': 'scene',
         'sensor': {'type': 'perspective', 'fov': 60,
                    'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
-                   'film': {'type': 'hdrfilm', 'width': 16, 'height': 16, 'pixel_format': 'rgb',
+                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
                             'rfilter': {'type': 'box'}},
                    'sampler': {'type': 'independent'}},
         'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
@@ -203,10 +204,13 @@ def test_caustic_through_glass_matches_the_blurred_irradiance(technique):
     for spp in (16, 64):
         means = []
         for k in range(K):
+            # 16 iterations in 16 passes, 64 in one pass: the schedule is the same
+            per_pass = {'samples_per_pass': RES * RES} if spp == 16 else {}
             integ = mi.load_dict({'type': 'bdpt', 'technique': technique, 'max_depth': 4, 'radius': rel,
-                                  'radius_alpha': 0.5, 'samples_per_pass': RES * RES})
+                                  'radius_alpha': 0.5, **per_pass})
             img = assert_finite(mi.render(scene, integrator=integ, spp=spp, seed=300 + k))
             assert integ.last_render_info['merge_iteration'] == spp
+            assert integ.last_render_info['passes'] == (spp if per_pass else 1)
             means.append(float(np.mean(img)))
         got[spp], se[spp] = np.mean(means), np.std(means, ddof=1) / np.sqrt(K)
         radii = [r1 * i ** -0.25 for i in range(1, spp + 1)]
