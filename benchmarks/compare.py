@@ -19,7 +19,9 @@ A run on a few scenes or contestants can be written as a section of the report r
 figures under `docs/results/NAME/`; issue 15's figures for `vcm` and `vm` are such a section:
 
     python benchmarks/compare.py --quick --section vcm --contestants bdpt,vcm,vm,path \
-        --scenes caustic,fig7-caustic,torus-glass,cornell-box
+        --scenes caustic,torus-glass,cornell-box,fig7-caustic
+                        # ~3 min on 2 cores once the references are cached; rendering them first takes
+                        # ~15-20 min (the torus in glass's alone ~10 min: path is its only reference through the glass)
 
 Scenes: the repository's (`--scenes` picks some), plus any given with `--scene-file KEY=PATH` (a Mitsuba 3
 scene file that takes `$res`, or `$resx` and `$resy`; options after commas: max_depth=N,
