@@ -10,7 +10,7 @@ over the light vertices y of the pass's N light subpaths within r of z (a consta
 the disc of radius r), where beta_y is the light subpath's throughput up to y (per unit area at
 y: no cosine at y) and f_z the camera vertex's BSDF. Mitsuba's ``eval`` gives f |cos_s|; the
 estimate needs f |cos_s| / |cos_g|: the light's flux per unit area of the surface (beta_y) is
-measured with the geometric normal. The estimate is biased (the light is blurred over the disc)
+measured with the geometric normal, y's own (see merge_one). The estimate is biased (the light is blurred over the disc)
 and consistent: the radius shrinks from iteration to iteration (MergeSchedule, parameter
 ``radius_alpha``).
 
@@ -168,7 +168,11 @@ class Merger:
         y = v.interaction(c.time, si.wavelengths)
         wl = y.to_world(y.wi)                       # towards the light subpath's previous vertex
         f, pdf_dir_w, pdf_rev_w = eval_camera_vertex(si, bsdf, wl, ok, c.diffuse)
-        value = f * v.beta * safe_div(1.0, dr.abs(dr.dot(si.n, wl)))
+        # beta_y is flux per unit area of y's surface (its geometric normal): on a mesh with
+        # interpolated normals a light vertex on the neighbouring triangle reaches z's triangle
+        # at grazing angles, where 1 / |cos_g| of z would explode (fireflies up to 42x the
+        # median on a smooth torus); for light vertices on z's own plane the two are one
+        value = f * v.beta * safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = v.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
         w = c.mis.weight_merge(v.d_vcm, l_vm, d_vcm, d_vm, pdf_dir_w, pdf_rev_w)
