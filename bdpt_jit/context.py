@@ -102,12 +102,6 @@ class Context:
         if settings['strategy_images'] and not mi.is_rgb:
             raise ParameterError(f"bdpt: parameter 'strategy_images' needs an RGB variant (the layers are "
                                  f"RGB images), not '{mi.variant()}'")
-        if self.strategies.merges:
-            if mi.is_spectral:
-                raise ParameterError(
-                    f"bdpt: technique '{settings['technique']}' (vertex merging) needs an RGB or monochrome "
-                    f"variant, not '{mi.variant()}': a light vertex carries its own wavelengths, which the "
-                    "camera vertices it would be merged with do not share")
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
         self.stats = RayStats() if settings['statistics'] else None

@@ -122,6 +122,12 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
             # emitters would draw their own in sample_ray): the sensor's, as its sample_ray does
             u_wl = sampler.next_1d()
+            if ctx.strategies.trace_merge:
+                # merging pairs a camera vertex with light vertices of other samples of its
+                # iteration (merge.MergeSchedule: sample j of every pixel): they share sample j of
+                # the first pixel's wavelengths, so a light vertex's throughput is for the camera
+                # vertex's wavelengths
+                u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
             spectral = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
         store, merger, schedule = None, None, None
         if ctx.strategies.trace_merge:

@@ -132,8 +132,8 @@ def test_vm_matches_the_blurred_irradiance(alpha):
 
 
 def test_vm_refuses_what_it_cannot_render():
-    """Merging needs an RGB or monochrome variant's shared wavelengths and has no (s,t) layers;
-    the radius must be positive and alpha in (0, 1]: each refused with the parameter named."""
+    """Merging has no (s,t) layers; the radius must be positive and alpha in (0, 1]: each
+    refused with the parameter named."""
     for bad in ({'radius': 0.0}, {'radius': -1.0}, {'radius_alpha': 0.0}, {'radius_alpha': 1.5},
                 {'radius': 'big'}):
         with pytest.raises(Exception, match=f"parameter '{list(bad)[0]}'"):   # (Mitsuba wraps it)

@@ -3,8 +3,8 @@
 with fixed seeds and saves them; the statistical tests run here.
 
 - mono and spectral Cornell boxes (a textured area light in spectral) agree per pixel with
-  Mitsuba's `path`, for bdpt, pt and lt, power and uniform weights (and vcm in mono: vertex
-  merging is refused in spectral variants, test_merging);
+  Mitsuba's `path`, for bdpt, pt and lt, power and uniform weights, and vcm (in spectral
+  variants the samples of a merging iteration share their wavelengths);
 - a narrow-band test that fails if a sample's light and camera subpaths carried different
   wavelengths: the light emits only at 440-460 nm, the walls reflect only at 640-660 nm, so
   every path with a bounce carries exactly zero; independent wavelengths would pair light of
@@ -83,6 +83,7 @@ CASES = [
     ('llvm_ad_spectral', 'textured', 'bdpt', 'uniform'),
     ('llvm_ad_spectral', 'textured', 'pt', 'power'),
     ('llvm_ad_spectral', 'textured', 'lt', 'power'),
+    ('llvm_ad_spectral', 'textured', 'vcm', 'power'),
 ]
 
 
@@ -100,15 +101,18 @@ def test_agrees_with_mitsuba_in_other_variants(tmp_path, variant, case, techniqu
     assert ok, f'{variant} {case} {technique}/{mis}: {msg}'
 
 
-@pytest.mark.parametrize('technique', ['bdpt', 'lt'])
+@pytest.mark.parametrize('technique', ['bdpt', 'lt', 'vcm', 'vm'])
 def test_light_and_camera_subpaths_share_wavelengths(tmp_path, technique):
     """Light at 440-460 nm only, walls reflecting at 640-660 nm only: every bounce carries 0.
     Pixels that do not see the light itself must be exactly black (max_depth 4: every
-    connection and splat strategy is used)."""
+    connection and splat strategy is used; with vcm and vm a large radius, so that every camera
+    vertex merges with light vertices of other samples of its iteration: those must carry the
+    same wavelengths)."""
+    merging = {'radius': 0.05} if technique in ('vcm', 'vm') else {}
     img = batches(tmp_path, 'llvm_ad_spectral', 'narrow', {'type': 'bdpt', 'max_depth': 4,
-                                                           'technique': technique}, 16, n=2)
+                                                           'technique': technique, **merging}, 16, n=2)
     direct = batches(tmp_path, 'llvm_ad_spectral', 'narrow', {'type': 'bdpt', 'max_depth': 1,
-                                                              'technique': technique}, 16, n=2)
+                                                              'technique': technique, **merging}, 16, n=2)
     seen_light = direct.max(axis=(0, 3)) > 0
     bounce = img.max(axis=(0, 3))[~seen_light]
     assert seen_light.any() and (~seen_light).any()
@@ -121,18 +125,6 @@ def test_polarized_variants_are_refused_with_the_reason():
             "try:\n    mi.load_dict({'type': 'bdpt'})\nexcept Exception as e:\n    print('REFUSED', e)\n")
     r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
     assert 'REFUSED' in r.stdout and 'polarized' in r.stdout, r.stdout + r.stderr[-2000:]
-
-
-def test_merging_is_refused_in_spectral_variants_with_the_reason():
-    """A light vertex carries its own wavelengths; merging would pair it with camera vertices of
-    other wavelengths: vcm is refused when the render starts, naming the parameter."""
-    code = ("import mitsuba as mi; mi.set_variant('llvm_ad_spectral'); import bdpt_jit\n"
-            "d = mi.cornell_box(); d['sensor']['film'].update(width=8, height=8)\n"
-            "try:\n    mi.load_dict({'type': 'bdpt', 'technique': 'vcm'}).render(mi.load_dict(d), spp=1)\n"
-            "except Exception as e:\n    print('REFUSED', e)\n")
-    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
-    assert 'REFUSED' in r.stdout and "technique 'vcm'" in r.stdout and 'wavelengths' in r.stdout, \
-        r.stdout + r.stderr[-2000:]
 
 
 GRAD = r'''
