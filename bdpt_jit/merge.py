@@ -71,9 +71,9 @@ class MergeSchedule:
 
 
 class PhotonGrid:
-    """The light vertices of one pass (store.LightStore), sorted by hashed (cell, iteration).
+    """The light vertices of one pass (store.LightStore), sorted by hashed (cell, iteration);
+    each iteration's cells are twice its radius wide.
 
-    inv_cell        1 / (2 r_max) (opaque): cells hold the pass's largest radius
     origin          the scene's bounding-box minimum (cell coordinates from there)
     mask            table size - 1 (a power of two), opaque
     start, counts   per bucket: first entry and number of entries
@@ -86,7 +86,6 @@ class PhotonGrid:
             size *= 2
         bbox = scene.bbox()
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
-        self.inv_cell = dr.opaque(mi.Float, 0.5 / schedule.r_max)
         self.mask = dr.opaque(mi.UInt32, size - 1)
         self.store = store
         self.schedule = schedule
@@ -96,7 +95,8 @@ class PhotonGrid:
         idx = slot - level * store.n_opaque
         valid = level < dr.gather(mi.UInt32, store.count, idx)
         first = dr.gather(mi.Vector4f, store.v, slot * store.record.packets(), valid)  # 'p' leads every record
-        bucket = self.bucket(self.cell(mi.Point3f(first.x, first.y, first.z)), schedule.group(idx))
+        group = schedule.group(idx)
+        bucket = self.bucket(self.cell(mi.Point3f(first.x, first.y, first.z), group), group)
         dr.eval(bucket, valid)
         self.counts = dr.zeros(mi.UInt32, size)
         place = dr.scatter_inc(self.counts, bucket, valid)           # place within the bucket
@@ -106,8 +106,13 @@ class PhotonGrid:
         dr.scatter(self.slots, slot, dr.gather(mi.UInt32, self.start, bucket, valid) + place, valid)
         dr.eval(self.counts, self.start, self.slots)
 
-    def cell(self, p):
-        return mi.Vector3i(dr.floor((p - self.origin) * self.inv_cell))
+    def inv_cell(self, group):
+        """1 / the cell size of iteration ``group``: twice its radius (the radius shrinks
+        within a pass: cells of the pass's first radius held 3x the candidates at its end)."""
+        return 0.5 / self.schedule.radius(group)
+
+    def cell(self, p, group):
+        return mi.Vector3i(dr.floor((p - self.origin) * self.inv_cell(group)))
 
     def bucket(self, c, group):
         u = [dr.reinterpret_array(mi.UInt32, c[i]) * _PRIMES[i] for i in range(3)]
@@ -116,7 +121,7 @@ class PhotonGrid:
     def neighbourhood(self, p, group):
         """The buckets of the 2 x 2 x 2 cells around ``p`` in iteration ``group`` (a list of 8)
         and, for each, whether an earlier one of the 8 is the same bucket."""
-        x = (p - self.origin) * self.inv_cell
+        x = (p - self.origin) * self.inv_cell(group)
         c0 = mi.Vector3i(dr.floor(x))
         step = mi.Vector3i(dr.select(x - dr.floor(x) < 0.5, -1, 1))
         buckets, dup = [], []
