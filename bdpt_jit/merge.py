@@ -6,19 +6,19 @@ towards the camera from the light that reached y (Georgiev et al. 2012, Hachisuk
 
     L(z) ~ 1 / (pi r^2 N) * sum_y  f_z(y's incoming direction) * beta_y * w_merge
 
-over the light vertices y of the pass's N light subpaths within r of z (a constant kernel over
-the disc of radius r), where beta_y is the light subpath's throughput up to y (per unit area at
-y: no cosine at y) and f_z the camera vertex's BSDF. Mitsuba's ``eval`` gives f |cos_s|; the
-estimate needs f |cos_s| / |cos_g|: the light's flux per unit area of the surface (beta_y) is
-measured with the geometric normal, y's own (see merge_one). The estimate is biased (the light is blurred over the disc)
-and consistent: the radius shrinks from iteration to iteration (MergeSchedule, parameter
-``radius_alpha``).
+over the light vertices y of the iteration's N light subpaths within r of z (a constant kernel
+over the disc of radius r), where beta_y is the light subpath's throughput up to y (per unit
+area at y: no cosine at y) and f_z the camera vertex's BSDF. Mitsuba's ``eval`` gives
+f |cos_s|; the estimate needs f |cos_s| / |cos_g|: the light's flux per unit area of the
+surface (beta_y) is measured with the geometric normal, y's own (see merge_one). The
+estimate is biased (the light is blurred over the disc) and consistent: the radius shrinks from
+iteration to iteration (MergeSchedule, parameter ``radius_alpha``).
 
 The grid is built with Dr.Jit alone, by a counting sort: each stored vertex hashes its cell
-(cell size 2r), the cells' counts are atomic increments, a prefix sum gives each cell its start,
-and a second atomic increment gives each vertex its place. A query visits the 2 x 2 x 2 cells
-nearest to z (they cover the ball of radius r around it), skipping a bucket that two of them
-hash to (it would count its vertices twice), in one loop over their entries."""
+(cell size 2r) and iteration, the buckets' counts are atomic increments, a prefix sum gives each
+bucket its start, and the increments' old values give each vertex its place. A query visits the
+2 x 2 x 2 cells nearest to z (they cover the ball of radius r around it), skipping a bucket
+that two of them hash to (it would count its vertices twice), in one loop over their entries."""
 
 import drjit as dr
 import mitsuba as mi
@@ -51,15 +51,15 @@ class MergeSchedule:
     def __init__(self, scene, radius_rel, alpha, first, spp_pass, pixel_count):
         self.r1 = radius_rel * scene_radius(scene)
         self.alpha = alpha
-        self.r_max = self.r1 * float(first) ** (0.5 * (alpha - 1.0))      # group 0's: the largest
         self.r_last = self.r1 * float(first + spp_pass - 1) ** (0.5 * (alpha - 1.0))
         self.first = dr.opaque(mi.Float, float(first))
-        self.spp_pass = dr.opaque(mi.UInt32, spp_pass)
         self.paths = pixel_count                                          # N of an iteration
         self.paths_f = dr.opaque(mi.Float, float(pixel_count))
+        self.spp_pass = dr.opaque(mi.UInt32, spp_pass)
 
     def group(self, idx):
-        """The iteration (from 0 in the pass) of sample / light subpath ``idx``."""
+        """The iteration (from 0 in the pass) of sample / light subpath ``idx`` (a pixel's
+        samples are consecutive)."""
         return idx % self.spp_pass
 
     def radius(self, group):
