@@ -7,8 +7,9 @@ comparison adds "mitsuba06 bdpt" and "mitsuba06 path" when it finds the built bi
 
     git clone https://github.com/mitsuba-renderer/mitsuba ~/src/mitsuba06
     sudo apt-get install <the packages `build` lists when they are missing>
-    python benchmarks/mitsuba06.py build --source ~/src/mitsuba06          # ~8 min with -j2
+    python benchmarks/mitsuba06.py build --source ~/src/mitsuba06          # 8-16 min with -j2
     python benchmarks/mitsuba06.py check --dist ~/src/mitsuba06/dist       # a 16x16 test render
+    python benchmarks/mitsuba06.py speed --dist ~/src/mitsuba06/dist       # samples/s beside bdpt_jit's (SmallVCM box)
     python benchmarks/mitsuba06.py convert scenes/caustic.xml /tmp/caustic06.xml --res 256
     python benchmarks/compare.py --quick --mitsuba06 ~/src/mitsuba06/dist  # or MITSUBA06_DIST=...
 
@@ -275,7 +276,7 @@ def build(src, jobs, prepare_only=False, log=print):
     if prepare_only:
         log(f'prepared {src}; build with: cd {src} && scons -j{jobs}')
         return None
-    log(f'building in {src} with scons -j{jobs} (about 8 minutes on 2 cores)')
+    log(f'building in {src} with scons -j{jobs} (8-16 minutes on 2 cores)')
     t0 = time.perf_counter()
     proc = subprocess.run(['scons', f'-j{jobs}'], cwd=src)
     if proc.returncode != 0:
@@ -558,6 +559,64 @@ def find(path=None):
     return m, f'{m.binary} (version {m.version})'
 
 
+# ============================================================================================ speed
+
+SMALLVCM_BOX = REPO.parent / 'shared' / 'scenes' / 'smallvcm-box' / 'smallvcm-box.xml'
+
+
+def speed(m06, scene, res=256, spp=16, max_depth=10, repeats=3, threads=None, log=print):
+    """Samples per second of Mitsuba 0.6's `bdpt` and `path` beside bdpt_jit's `bdpt` and Mitsuba 3's
+    `path` (llvm_ad_rgb) on one Mitsuba 3 scene file, at the same resolution, spp and max depth. Mitsuba
+    0.6's time is the render time it logs (process start and kd-tree build left out), Mitsuba 3's the
+    render after one warm-up render (scene loading and kernel compilation left out); `repeats` timed
+    renders of each, interleaved so that a change of the machine's load spreads over all of them;
+    medians. Returns {name: {'times': [...], 'median_s':, 'msps':}}."""
+    import statistics
+    import drjit as dr
+    import mitsuba as mi
+    if mi.variant() is None:
+        mi.set_variant('llvm_ad_rgb')
+    import bdpt_jit  # noqa: F401  (registers the 'bdpt' integrator)
+    scene = Path(scene).resolve()
+    with tempfile.TemporaryDirectory(prefix='mitsuba06-speed-') as tmp:
+        xml06 = Path(tmp) / (scene.stem + '-06.xml')
+        convert_file(scene, xml06, {'res': res, 'resx': res, 'resy': res}, max_depth)
+        sc3 = mi.load_file(str(scene), res=res, resx=res, resy=res, max_depth=max_depth, spp=spp, integrator='path') \
+            if '$resx' in scene.read_text() else \
+            mi.load_file(str(scene), res=res, max_depth=max_depth, spp=spp, integrator='path')
+        w, h = (int(v) for v in sc3.sensors()[0].film().crop_size())
+        integrators = {'bdpt_jit bdpt': mi.load_dict({'type': 'bdpt', 'max_depth': max_depth}),
+                       'Mitsuba 3 path': mi.load_dict({'type': 'path', 'max_depth': max_depth})}
+
+        def render3(integ, seed):
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            img = mi.render(sc3, integrator=integ, spp=spp, seed=seed)
+            dr.eval(img)
+            dr.sync_thread()
+            return time.perf_counter() - t0
+
+        times = {'Mitsuba 0.6 bdpt': [], 'Mitsuba 0.6 path': [], 'bdpt_jit bdpt': [], 'Mitsuba 3 path': []}
+        warmup = {name: render3(integ, 0) for name, integ in integrators.items()}
+        for r in range(repeats):
+            for name in times:
+                if name.startswith('Mitsuba 0.6'):
+                    t, _, img = m06.render(xml06, name.split()[-1], spp, seed=r + 1, threads=threads)
+                    if img.shape[:2] != (h, w):
+                        raise Mitsuba06Error(f'Mitsuba 0.6 rendered {img.shape[1]}x{img.shape[0]}, not {w}x{h}')
+                else:
+                    t = render3(integrators[name], r + 1)
+                times[name].append(t)
+            log(f'repeat {r + 1}/{repeats}: ' + ', '.join(f'{k} {v[-1]:.2f} s' for k, v in times.items()))
+    out = {}
+    for name, ts in times.items():
+        med = statistics.median(ts)
+        out[name] = {'times': ts, 'median_s': med, 'msps': w * h * spp / med / 1e6}
+        if name in warmup:
+            out[name]['warmup_s'] = warmup[name]
+    return out
+
+
 # ============================================================================================ command line
 
 def main(argv=None):
@@ -575,6 +634,15 @@ def main(argv=None):
     c.add_argument('--max-depth', type=int)
     k = sub.add_parser('check', help='find a built Mitsuba 0.6 and render a 16x16 Cornell box')
     k.add_argument('--dist', help=f'dist/ folder or binary (default: ${ENV_VAR})')
+    v = sub.add_parser('speed', help='samples/s of Mitsuba 0.6 bdpt and path beside bdpt_jit bdpt and Mitsuba 3 path')
+    v.add_argument('--dist', help=f'dist/ folder or binary (default: ${ENV_VAR})')
+    v.add_argument('--scene', type=Path, default=SMALLVCM_BOX, help='a Mitsuba 3 scene file (default: %(default)s)')
+    v.add_argument('--res', type=int, default=256)
+    v.add_argument('--spp', type=int, default=16)
+    v.add_argument('--max-depth', type=int, default=10)
+    v.add_argument('--repeats', type=int, default=3)
+    v.add_argument('--threads', type=int, help='Mitsuba 0.6 -p (default: all cores, as Mitsuba 3 uses)')
+    v.add_argument('--json', type=Path, help='also write the figures to this file')
     args = ap.parse_args(argv)
     try:
         if args.command == 'build':
@@ -588,6 +656,29 @@ def main(argv=None):
             params = {'res': args.res, 'resx': args.res, 'resy': args.res} if args.res else {}
             convert_file(args.src, args.dst, params, args.max_depth)
             print(f'wrote {args.dst}')
+        elif args.command == 'speed':
+            m, how = find(args.dist)
+            if m is None:
+                raise Mitsuba06Error(how)
+            if args.repeats < 1:
+                raise Mitsuba06Error('--repeats must be at least 1')
+            import platform
+            print(f'Mitsuba 0.6: {how}\nscene: {args.scene}, {args.res}x{args.res}, {args.spp} spp, max depth '
+                  f'{args.max_depth}, {args.repeats} timed repeats; {os.cpu_count()} cores, {platform.platform()}')
+            res = speed(m, args.scene, args.res, args.spp, args.max_depth, args.repeats, args.threads)
+            print(f"\n{'renderer':<18} {'median s':>9} {'M samples/s':>12}   (times)")
+            for name, r in res.items():
+                print(f"{name:<18} {r['median_s']:>9.3f} {r['msps']:>12.3f}   "
+                      + ' '.join(f'{t:.2f}' for t in r['times']))
+            b06, b3 = res['Mitsuba 0.6 bdpt']['msps'], res['bdpt_jit bdpt']['msps']
+            print(f'\nbdpt_jit bdpt / Mitsuba 0.6 bdpt (samples/s): {b3 / b06:.2f}')
+            if args.json:
+                import json
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                args.json.write_text(json.dumps({'mitsuba06': how, 'scene': str(args.scene), 'res': args.res,
+                                                 'spp': args.spp, 'max_depth': args.max_depth,
+                                                 'repeats': args.repeats, 'cores': os.cpu_count(),
+                                                 'results': res}, indent=1))
         else:
             m, how = find(args.dist)
             if m is None:
