@@ -51,6 +51,7 @@ import mitsuba as mi
 
 from . import connect
 from .jitmath import safe_div, sel
+from .rays import spawn
 
 # parameter keys whose derivative bdpt does not compute (see the module docstring)
 _REFUSED_LEAVES = ('position', 'direction', 'x_fov', 'focus_distance', 'aperture_radius', 'center', 'radius')
@@ -213,7 +214,7 @@ def slide(c, si, si_next, wo, active):
     the law of reflection or refraction). Changes ``si_next`` in place, derivatives only: its
     values stay those of the traced hit (where the re-traced ray finds another primitive, as it
     may at an edge, the hit keeps its material-point derivative)."""
-    ray = si.spawn_ray(wo)
+    ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo, si.time, si.wavelengths)   # rays.py
     hit = c.scene.ray_intersect(ray, mi.RayFlags.All, False, active)
     same = active & hit.is_valid() & (hit.prim_index == si_next.prim_index) & (hit.shape == si_next.shape)
     for name in _SLIDING:
