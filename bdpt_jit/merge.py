@@ -76,7 +76,7 @@ class PhotonGrid:
 
     origin          the scene's bounding-box minimum (cell coordinates from there)
     mask            table size - 1 (a power of two), opaque
-    start, counts   per bucket: first entry and number of entries
+    start           per bucket: its first entry (and the next bucket's: its end)
     slots           the store's slots in bucket order"""
 
     def __init__(self, scene, store, schedule):
@@ -98,13 +98,15 @@ class PhotonGrid:
         group = schedule.group(idx)
         bucket = self.bucket(self.cell(mi.Point3f(first.x, first.y, first.z), group), group)
         dr.eval(bucket, valid)
-        self.counts = dr.zeros(mi.UInt32, size)
-        place = dr.scatter_inc(self.counts, bucket, valid)           # place within the bucket
+        counts = dr.zeros(mi.UInt32, size + 1)                        # (the last: no bucket)
+        place = dr.scatter_inc(counts, bucket, valid)                # place within the bucket
         dr.eval(place)                                                # (a result read once only)
-        self.start = dr.prefix_sum(self.counts)                      # exclusive
+        # exclusive: bucket b holds entries start[b] .. start[b + 1] - 1 (one array: a query's
+        # two reads of a bucket share a cache line)
+        self.start = dr.prefix_sum(counts)
         self.slots = dr.zeros(mi.UInt32, max(n_slots, 1))
         dr.scatter(self.slots, slot, dr.gather(mi.UInt32, self.start, bucket, valid) + place, valid)
-        dr.eval(self.counts, self.start, self.slots)
+        dr.eval(self.start, self.slots)
 
     def inv_cell(self, group):
         """1 / the cell size of iteration ``group``: twice its radius (the radius shrinks
@@ -151,8 +153,9 @@ class Merger:
         buckets, dup = g.neighbourhood(p, group)
         starts, totals = [], [mi.UInt32(0)]
         for b, d in zip(buckets, dup):
-            starts.append(dr.gather(mi.UInt32, g.start, b))
-            totals.append(totals[-1] + dr.select(d, 0, dr.gather(mi.UInt32, g.counts, b)))
+            first, end = dr.gather(mi.UInt32, g.start, b), dr.gather(mi.UInt32, g.start, b + 1)
+            starts.append(first)
+            totals.append(totals[-1] + dr.select(d, 0, end - first))
         return starts, totals
 
     def merge_one(self, k, si, bsdf, depth, d_vcm, d_vm, group, radius2, active):
