@@ -581,9 +581,9 @@ def speed(m06, scene, res=256, spp=16, max_depth=10, repeats=3, threads=None, lo
     with tempfile.TemporaryDirectory(prefix='mitsuba06-speed-') as tmp:
         xml06 = Path(tmp) / (scene.stem + '-06.xml')
         convert_file(scene, xml06, {'res': res, 'resx': res, 'resy': res}, max_depth)
-        sc3 = mi.load_file(str(scene), res=res, resx=res, resy=res, max_depth=max_depth, spp=spp, integrator='path') \
-            if '$resx' in scene.read_text() else \
-            mi.load_file(str(scene), res=res, max_depth=max_depth, spp=spp, integrator='path')
+        text = scene.read_text()        # Mitsuba 3 refuses parameters a scene does not use
+        given = {'res': res, 'resx': res, 'resy': res, 'max_depth': max_depth, 'spp': spp, 'integrator': 'path'}
+        sc3 = mi.load_file(str(scene), **{k: v for k, v in given.items() if re.search(rf'\${k}\b', text)})
         w, h = (int(v) for v in sc3.sensors()[0].film().crop_size())
         integrators = {'bdpt_jit bdpt': mi.load_dict({'type': 'bdpt', 'max_depth': max_depth}),
                        'Mitsuba 3 path': mi.load_dict({'type': 'path', 'max_depth': max_depth})}
