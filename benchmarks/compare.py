@@ -18,7 +18,7 @@ A run on a few scenes or contestants can be written as a section of the report r
 `--section NAME` puts it between markers in `--out` (a later run with the same NAME replaces it) with its
 figures under `docs/results/NAME/`; issue 15's figures for `vcm` and `vm` are such a section:
 
-    python benchmarks/compare.py --quick --section vcm --contestants bdpt,vcm,vm,path \
+    python benchmarks/compare.py --quick --section vcm --contestants bdpt,vcm,vm,path \\
         --scenes caustic,torus-glass,cornell-box,fig7-caustic
                         # ~3 min on 2 cores once the references are cached; rendering them first takes
                         # ~15-20 min (the torus in glass's alone ~10 min: path is its only reference through the glass)
@@ -30,6 +30,12 @@ reference=mixed|light, ref_scale=N, focus=1, title=TEXT). Users' scenes stay whe
 Mitsuba 0.6: `--mitsuba06 PATH/TO/dist` (or the environment variable MITSUBA06_DIST) names a Mitsuba 0.6
 built by `benchmarks/mitsuba06.py build`; its `bdpt` and `path` then join the tables and plots as
 "mitsuba06 bdpt" and "mitsuba06 path", measured against a reference rendered by its own `bdpt`.
+Issue 13's section of docs/results.md:
+
+    python benchmarks/compare.py --quick --section mitsuba06 --mitsuba06 ~/src/mitsuba06/dist \\
+        --contestants bdpt,path,mitsuba06-bdpt,mitsuba06-path --scenes cornell-box,caustic
+                        # ~1.5 min on 2 cores once the references are cached; 0.6's own references add
+                        # ~80 s the first time (`benchmarks/mitsuba06.py speed` gives samples/s alone)
 Without it, the report says it was absent. Likewise `vcm` and `vm` where this bdpt_jit refuses the
 technique (before vertex merging landed): left out, and the report says why.
 

@@ -145,7 +145,9 @@ def python3_sconscript(text):
 # renders. Neither `sampleCount` partitions nor thread counts help (each worker's stream is cloned
 # from the same seeded parent). This edit adds an optional `seed` property; without it the
 # sampler behaves as before. A binary without the edit warns 'Unqueried attribute "seed"', which
-# Mitsuba06.render turns into an error.
+# Mitsuba06.render turns into an error. With the edit, one seed reproduces its image on one thread
+# (-p 1) only: with several, image blocks go to the workers' sampler clones in whatever order they
+# finish; renders with different seeds are independent either way.
 SEED_EDIT = ('src/samplers/independent.cpp',
              '        m_random = new Random();\n    }',
              '        /* bdpt_jit benchmarks (benchmarks/mitsuba06.py): an optional seed, so that repeated\n'
