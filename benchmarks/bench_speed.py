@@ -120,7 +120,7 @@ def main():
     ap.add_argument('--repeats', type=int, default=3)
     ap.add_argument('--res', type=int, default=256)
     ap.add_argument('--max-depth', type=int, default=10)
-    ap.add_argument('--technique', default='bdpt', choices=['bdpt', 'pt', 'lt'])
+    ap.add_argument('--technique', default='bdpt', choices=['bdpt', 'pt', 'lt', 'vcm', 'vm'])
     ap.add_argument('--mis', default='power', choices=['power', 'balance', 'uniform'])
     ap.add_argument('--variant', default='llvm_ad_rgb')
     ap.add_argument('--stages', action='store_true', help='also time each stage of bdpt, pt and lt')
