@@ -213,7 +213,7 @@ class CameraTracer:
         cos_out = dr.abs(dr.dot(si.n, wo_world))
         if c.mis.mis_merges:
             d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
-        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
+        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta, camera_side=True)
         if c.strategies.ppm:        # vm: only delta lobes go on (a smooth one was merged)
             active &= is_delta if is_delta is not None else False
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())

@@ -83,10 +83,12 @@ class Context:
             # not have): their strategies leave the partition of unity (gradients.py)
             self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
                                                     _NoSplats(self.camera), self.hide_emitters)
-        self.mis = MIS(settings['mis'], self.strategies, detached=ad)
+        self.has_delta = scene_has_delta_bsdf(scene)
+        # geometry next to mirrors and glass: chains differentiated from the camera side only
+        self.mis = MIS(settings['mis'], self.strategies, detached=ad,
+                       camera_chains=bool(ad_geometry) and self.has_delta)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
-        self.has_delta = scene_has_delta_bsdf(scene)
         self.exact_adjoint = scene_perturbs_normals(scene)
         self.record = record_type(VertexNeeds(scene), merging=self.mis.mis_merges)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs

@@ -31,16 +31,16 @@ unbiased for every strategy that traces the chain from the camera: technique ``p
 emitter sampling). The light subpaths of bdpt trace chains from the other end (there the
 vertex after the chain, towards the camera, is the ray intersection, and the one before it a
 material point): the same path is parametrised in two ways, the derivatives of the two
-integrands differ by a divergence term, and MIS weights that mix them leave a bias. So geometry
-in scenes with delta BSDFs is refused for every technique but ``pt`` (``check_technique``). To
-lift it for bdpt, the strategies that cross a specular chain from the light side must leave
-the partition of unity (as light tracing's splats do for geometry): a camera subpath's d_vc set
-to 0 at a delta vertex, and light vertices after a delta vertex not connected.
+integrands differ by a divergence term, and MIS weights that mix them leave a bias. So in such
+a pass bdpt leaves the strategies that cross a specular chain from the light side out of the
+partition of unity (as light tracing's splats are for geometry): ``mis.MIS.camera_chains``, a
+camera subpath's d_vc set to 0 at a delta vertex and light subpaths ended at their first delta
+vertex.
 
 Not handled, and refused (``check_parameters``, ``check_technique``): sensor parameters, point
 and spot light positions, the index of refraction of a smooth dielectric (it turns a delta
 lobe), shape parameters with a directionalarea emitter, and shape parameters in scenes with
-delta BSDFs with techniques other than ``pt``.
+delta BSDFs with techniques other than ``pt`` and ``bdpt``.
 
 The primal image is never changed: ``dr.replace_grad`` keeps every primal value and only
 exchanges gradients.
@@ -115,9 +115,10 @@ def slides_after_delta(c):
 
 
 def check_technique(c):
-    """Geometry in a scene with delta BSDFs is differentiated with technique 'pt' only: refuse
-    the others (called when a pass starts tracing)."""
-    if not slides_after_delta(c) or c.strategies.technique == 'pt':
+    """Geometry in a scene with delta BSDFs is differentiated with techniques 'pt' and 'bdpt'
+    (the latter without the strategies whose light subpath crosses a delta vertex:
+    mis.MIS.camera_chains): refuse the others (called when a pass starts tracing)."""
+    if not slides_after_delta(c) or c.strategies.technique in ('pt', 'bdpt'):
         return
     key = _geometry(c)[0]
     raise NotImplementedError(
@@ -127,7 +128,7 @@ def check_technique(c):
         "ends (each side's vertex after the chain is a ray intersection, the other side's a material "
         "point). The strategies that cross a chain from the light side and those that cross it from the "
         "camera side parametrise the same paths differently, and MIS weights that mix the two give a "
-        "biased derivative. Use technique 'pt' (every chain crossed from the camera: unbiased interior "
+        "biased derivative. Use technique 'pt' or 'bdpt' (every chain crossed from the camera: unbiased interior "
         "derivative), or differentiate BSDF and emitter values")
 
 

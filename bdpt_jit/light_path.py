@@ -172,6 +172,8 @@ class LightTracer:
         if c.mis.mis_merges:
             d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
         d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
+        if c.mis.camera_chains and is_delta is not None:
+            active &= ~is_delta       # delta chains are crossed from the camera side only (mis.py)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
         ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)

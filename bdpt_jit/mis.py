@@ -63,7 +63,7 @@ class MIS:
     arrays (or Python floats), so they trace into any kernel, symbolic or evaluated, and
     differentiate."""
 
-    def __init__(self, kind: str = 'power', strategies='bdpt', detached=False):
+    def __init__(self, kind: str = 'power', strategies='bdpt', detached=False, camera_chains=False):
         if kind not in ('power', 'balance', 'uniform'):
             raise ValueError(f"mis must be power, balance or uniform, got {kind!r}")
         if isinstance(strategies, str):
@@ -71,6 +71,11 @@ class MIS:
         self.kind = kind
         self.s = strategies
         self.detached = detached      # weights without derivatives (gradients.py)
+        # delta chains crossed from the camera side only (derivatives with respect to geometry
+        # next to mirrors and glass, gradients.slide): every strategy whose light subpath
+        # contains a delta vertex is left out (the light subpaths end at their first delta
+        # vertex, and the camera side's sums drop those strategies at each of its delta vertices)
+        self.camera_chains = camera_chains
         self.vm_factor = 0.0          # h(eta): set per pass by set_radius (merges)
         self.vc_factor = 0.0          # h(1/eta)
         self.mis_merges = strategies.merges and not strategies.ppm
@@ -130,11 +135,12 @@ class MIS:
         d_vc = d_vc / self.h(cos_hit)                       # [eq. 9, 22]
         return d_vcm, d_vc
 
-    def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta):
+    def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side=False):
         """Update at a vertex after sampling the next direction. ``pdf_fwd_w``: density of the
         sampled direction; ``pdf_rev_w``: density of sampling the incoming direction given the
         outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal).
-        ``is_delta=None``: the scene has no delta lobe, and the delta case is not traced."""
+        ``is_delta=None``: the scene has no delta lobe, and the delta case is not traced.
+        ``camera_side``: a camera subpath's vertex (see ``camera_chains``)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
         d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm + self.vm_factor)  # [eq. 21, 22] vcm_i, [VCM (35)]
         d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
@@ -143,6 +149,8 @@ class MIS:
         # A delta vertex cannot be connected: the strategies that would end a subpath there
         # have density 0, and the forward and reverse discrete lobe probabilities cancel.
         d_vc_delta = d_vc * self.h(cos_out)                                             # [eq. 21] p<-/p-> = 1
+        if self.camera_chains and camera_side:
+            d_vc_delta = 0.0 * d_vc     # the strategies whose light subpath would cross this vertex: none
         d_vcm_delta = 0.0 * d_vcm                                                       # [eq. 22] no connection here
         return (dr.select(is_delta, d_vcm_delta, d_vcm_smooth),
                 dr.select(is_delta, d_vc_delta, d_vc_smooth))

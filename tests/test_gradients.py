@@ -103,23 +103,23 @@ def test_primal_unchanged_with_gradients_enabled():
 
 
 def test_geometry_with_delta_bsdfs_is_refused_with_a_reason():
-    """Shape parameters in a scene with mirrors or glass are refused with technique bdpt (its
-    light subpaths cross specular chains from the other end: gradients.check_technique), naming
-    the key and the technique to use; technique pt renders their derivative."""
+    """Shape parameters in a scene with mirrors or glass: technique lt is refused (every path
+    reaches the image through a splat that moves with the geometry) and vcm too (merging is not
+    differentiable), each naming the reason; pt and bdpt render their derivative."""
     scene = load('paper-fig6.xml')
     key = next(k for k in mi.traverse(scene).keys() if k.endswith('to_world') and 'floor' in k)
-    for technique in ('bdpt', 'pt'):
+    for technique in ('bdpt', 'pt', 'lt', 'vcm'):
         scene = load('paper-fig6.xml')
         params = mi.traverse(scene)
         attach(params, key)
         img = mi.render(scene, params, integrator=mi.load_dict({'type': 'bdpt', 'technique': technique, 'max_depth': 3}), spp=1)
-        if technique == 'pt':
+        if technique in ('pt', 'bdpt'):
             dr.backward(img)
             continue
         with pytest.raises(Exception) as e:
             dr.backward(img)
         text = repr(e.value) + repr(e.value.__cause__)
-        assert key in text and 'not supported' in text and "technique 'pt'" in text
+        assert f"technique '{technique}'" in text and ('boundary' in text or 'not differentiable' in text), text
 
 
 # ---------------------------------------------------------------------------- finite differences
@@ -464,18 +464,20 @@ DELTA_CASES = {
 }
 
 
+@pytest.mark.parametrize('technique', ['pt', 'bdpt'])
 @pytest.mark.parametrize('case', list(DELTA_CASES))
-def test_vertex_translation_next_to_delta_vertices_agrees_with_finite_differences(case):
-    """Geometry in scenes with delta BSDFs (technique pt, gradients.slide): the vertex after a
-    mirror or glass vertex is the intersection of the delta direction, which turns when the
-    vertex before it moves. A floor seen in a mirror moved up (it is the delta vertex's
-    neighbour on both sides), and a textured floor under a glass sphere slid within its plane
-    (seen through the glass)."""
+def test_vertex_translation_next_to_delta_vertices_agrees_with_finite_differences(case, technique):
+    """Geometry in scenes with delta BSDFs (gradients.slide): the vertex after a mirror or glass
+    vertex is the intersection of the delta direction, which turns when the vertex before it
+    moves. A floor seen in a mirror moved up (it is the delta vertex's neighbour on both sides),
+    and a textured floor under a glass sphere slid within its plane (seen through the glass).
+    With bdpt the strategies whose light subpath crosses a delta vertex are left out
+    (mis.MIS.camera_chains): every chain is crossed from the camera side."""
     build, key, direction, h, max_depth = DELTA_CASES[case]
     scene = build()
     params = mi.traverse(scene)
     delta = translation(params, key, direction)
-    integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'technique': 'pt'})
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'technique': technique})
     ad = forward_batches(scene, key, delta, integ, 32, 12)
     fd = fd_batches(scene, key, delta, h, integ, 32, 12)
     assert np.all(np.isfinite(ad))

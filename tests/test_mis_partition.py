@@ -114,7 +114,12 @@ def camera_density(P, i):
     return P['pE'][:, i + 1] * P['cosA'][:, i] / P['d2'][:, i]
 
 
-def brute_force(kind, technique, P, p_lens=None):
+def chain_free(k, s, P):
+    """The light subpath x_0 .. x_{s-1} has no delta vertex (MIS.camera_chains)."""
+    return ~P['delta'][:, 1:max(s, 1)].any(axis=1) if s > 1 else np.ones(M, bool)
+
+
+def brute_force(kind, technique, P, p_lens=None, chains=False):
     k = P['k']
     d2, cosA, cosB, pL, pE = P['d2'], P['cosA'], P['cosB'], P['pL'], P['pE']
     beta = {'power': 2.0, 'balance': 1.0}.get(kind)
@@ -151,7 +156,8 @@ def brute_force(kind, technique, P, p_lens=None):
         if p_lens is not None:                              # thin lens: z0 sampled on the lens
             p = p * p_lens
         raw.append(p)
-        dens.append(np.where(allowed(technique, k, s, P), p, 0.0))
+        ok = allowed(technique, k, s, P) & (chain_free(k, s, P) if chains else True)
+        dens.append(np.where(ok, p, 0.0))
     if technique == 'vcm':
         dens += [np.where(merge_allowed(k, i, P), raw[i + 1] * camera_density(P, i) * P['eta'], 0.0)
                  for i in range(1, k)]
@@ -165,10 +171,10 @@ def brute_force(kind, technique, P, p_lens=None):
     return np.where(total > 0, hp / np.where(total > 0, total, 1.0), 0.0)
 
 
-def recursive(kind, technique, P):
+def recursive(kind, technique, P, chains=False):
     k = P['k']
     reachable = P.get('camera') != 'delta'
-    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable))
+    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable), camera_chains=chains)
     F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
     B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
@@ -210,7 +216,7 @@ def recursive(kind, technique, P):
         for i in range(k - 1, last, -1):
             args = (F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
             d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args)
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, camera_side=True)
             if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
                 d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
                 d_vm = mis.vm_on_hit(d_vm, F(cosA[:, i - 1]))
@@ -256,7 +262,8 @@ def recursive(kind, technique, P):
         w = np.broadcast_to(w, (M,)) if w.size == 1 else w
         if not reachable and t == 1:
             assert np.all(w == 0), f'a light-tracing weight (s={s}, t=1) for an unreachable camera'
-        out.append(np.where(allowed(technique, k, s, P), w, 0.0))
+        ok = allowed(technique, k, s, P) & (chain_free(k, s, P) if chains else True)
+        out.append(np.where(ok, w, 0.0))
     if technique == 'vcm':
         for i in range(1, k):                                # merging at x_i
             l_vcm, _, l_vm = light_state(i)
@@ -307,3 +314,21 @@ def test_weights_are_never_nan(kind):
     for w in ws:
         a = np.array(w, dtype=np.float64)
         assert np.all(np.isfinite(a)) and np.all((a >= 0) & (a <= 1))
+
+
+@pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
+@pytest.mark.parametrize('emitter', KINDS)
+@pytest.mark.parametrize('k', list(range(2, 9)))
+def test_camera_chains_partition_of_unity(k, emitter, kind):
+    """MIS.camera_chains (geometry derivatives next to mirrors and glass, bdpt): the strategies
+    whose light subpath contains a delta vertex are left out; the others' recursive weights
+    equal the brute force over that smaller set and sum to one wherever one is left."""
+    rng = np.random.default_rng(7000 + 100 * k + 7 * KINDS.index(emitter))
+    P = random_paths(rng, k, delta_prob=0.4, emitter=emitter)
+    P['camera'] = 'pinhole'
+    w_rec = recursive(kind, 'bdpt', P, chains=True)
+    w_ref = brute_force(kind, 'bdpt', P, chains=True)
+    assert np.all(np.isfinite(w_rec)) and np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
+    left = np.array([allowed('bdpt', k, s, P) & chain_free(k, s, P) for s in range(k + 1)]).any(axis=0)
+    np.testing.assert_allclose(w_rec.sum(axis=0)[left], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
