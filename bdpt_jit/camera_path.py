@@ -185,13 +185,7 @@ class CameraTracer:
         u1, u2 = sampler.next_1d(), sampler.next_2d()
         ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
             sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err)
-        si_next = gradients.intersect(c, ray, active)
-        if c.ad:
-            beta = beta * gradients.edge_ratio(c, True, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
-            si_next = gradients.attach_wi(c, si_next, si.p)
-        # the edge's length between the vertices, not from the offset origin (rays.py): at grazing
-        # angles the two differ by far more than rounding, and every density would follow t
-        dist2 = dr.squared_norm(si_next.p - si.p)
+        si_next, beta, dist2 = gradients.next_vertex(c, True, si, bsdf, ray, (u1, u2), is_delta, beta, active)
         return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
 
     def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err):

@@ -269,6 +269,19 @@ def sample_direct(c, si, u, active):
     return ds, dr.detach(w) * ratio(le * geo)
 
 
+def next_vertex(c, camera_side, si, bsdf, ray, u, is_delta, beta, active):
+    """The vertex that ``ray`` (sampled at ``si`` with the samples ``u``) finds, for both tracers:
+    returns it, the throughput (times the edge's derivative factor in a differentiable pass:
+    ``edge_ratio``, the next vertex then a material point) and the squared length of the edge
+    between the two vertices, not from the offset origin (rays.py: at grazing angles they differ
+    by far more than rounding, and every density would follow t)."""
+    si_next = intersect(c, ray, active)
+    if c.ad:
+        beta = beta * edge_ratio(c, camera_side, si, bsdf, si_next, ray.d, u, is_delta, active)
+        si_next = attach_wi(c, si_next, si.p)
+    return si_next, beta, dr.squared_norm(si_next.p - si.p)
+
+
 def sample_emission(c, time, u_sel, u_pos, u_dir, active, wavelengths=None):
     """EmitterTable.sample_emission. In a differentiable pass everything is sampled without
     derivatives except the emitter point of area emitters, a material point of its shape;

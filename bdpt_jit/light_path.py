@@ -41,7 +41,7 @@ class LightTracer:
                                       spectral[1] if spectral is not None else 1.0)
 
         d_vc = c.mis.light_init(e.pdf_emit_w, e.cos_e, e.kinds.delta)
-        d_vm = c.mis.vm_init_light(d_vc) if c.mis.mis_merges else 0.0
+        d_vm = c.mis.vm_init_light(d_vc)            # (vc_factor 0 without merges: unused then)
         active &= c.max_depth_edges >= 2
         si = gradients.intersect(c, e.ray, active)
         if c.ad:
@@ -134,11 +134,7 @@ class LightTracer:
         u1, u2 = sampler.next_1d(), sampler.next_2d()
         ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
             sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active)
-        si_next = gradients.intersect(c, ray, active)
-        if c.ad:
-            beta = beta * gradients.edge_ratio(c, False, si, bsdf, si_next, ray.d, (u1, u2), is_delta, active)
-            si_next = gradients.attach_wi(c, si_next, si.p)
-        dist2 = dr.squared_norm(si_next.p - si.p)      # between the vertices (as camera_path.advance)
+        si_next, beta, dist2 = gradients.next_vertex(c, False, si, bsdf, ray, (u1, u2), is_delta, beta, active)
         return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
 
     def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active):

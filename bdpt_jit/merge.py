@@ -53,8 +53,7 @@ class MergeSchedule:
         self.alpha = alpha
         self.r_last = self.r1 * float(first + spp_pass - 1) ** (0.5 * (alpha - 1.0))
         self.first = dr.opaque(mi.Float, float(first))
-        self.paths = pixel_count                                          # N of an iteration
-        self.paths_f = dr.opaque(mi.Float, float(pixel_count))
+        self.paths_f = dr.opaque(mi.Float, float(pixel_count))          # N of an iteration
         self.spp_pass = dr.opaque(mi.UInt32, spp_pass)
 
     def group(self, idx):

@@ -86,6 +86,27 @@ PARAMS = (
 PARAMS_BY_NAME = {p.name: p for p in PARAMS}
 
 
+def _number(p: Param, value):
+    """An int or float parameter's value, converted and within the row's bounds."""
+    word = 'an integer' if p.type is int else 'a number'
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise ParameterError(f"bdpt: parameter '{p.name}' must be {word}, got {value!r}")
+    try:
+        x = p.type(value)
+    except ValueError:
+        raise ParameterError(f"bdpt: parameter '{p.name}' must be {word}, got {value!r}") from None
+    if p.type is int and isinstance(value, float) and x != value:
+        raise ParameterError(f"bdpt: parameter '{p.name}' must be {word}, got {value!r}")
+    low_ok = p.minimum is None or (x > p.minimum if p.exclusive_minimum else x >= p.minimum)
+    high_ok = p.maximum is None or x <= p.maximum
+    if not (low_ok and high_ok and x == x and abs(x) != float('inf')):
+        bounds = [f"{'>' if p.exclusive_minimum else '>='} {p.minimum}"] if p.minimum is not None else []
+        bounds += [f"<= {p.maximum}"] if p.maximum is not None else []
+        finite = 'a finite number ' if p.type is float else ''
+        raise ParameterError(f"bdpt: parameter '{p.name}' must be {finite}{' and '.join(bounds)}, got {x}")
+    return x
+
+
 def check_value(p: Param, value):
     """Validate one value against its row of the table; return it converted."""
     if p.type is bool:
@@ -93,33 +114,8 @@ def check_value(p: Param, value):
             value = value.lower() == 'true'
         if not isinstance(value, bool):
             raise ParameterError(f"bdpt: parameter '{p.name}' must be a boolean, got {value!r}")
-    elif p.type is int:
-        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}")
-        try:
-            iv = int(value)
-        except ValueError:
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}") from None
-        if isinstance(value, float) and iv != value:
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be an integer, got {value!r}")
-        value = iv
-        if p.minimum is not None and value < p.minimum:
-            raise ParameterError(
-                f"bdpt: parameter '{p.name}' must be >= {p.minimum}, got {value}")
-    elif p.type is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be a number, got {value!r}")
-        try:
-            value = float(value)
-        except ValueError:
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be a number, got {value!r}") from None
-        low_ok = p.minimum is None or (value > p.minimum if p.exclusive_minimum else value >= p.minimum)
-        high_ok = p.maximum is None or value <= p.maximum
-        if not (low_ok and high_ok and value == value and abs(value) != float('inf')):
-            bound = (f"> {p.minimum}" if p.exclusive_minimum else f">= {p.minimum}") if p.minimum is not None else ''
-            if p.maximum is not None:
-                bound += f" and <= {p.maximum}"
-            raise ParameterError(f"bdpt: parameter '{p.name}' must be a finite number {bound}, got {value}")
+    elif p.type in (int, float):
+        value = _number(p, value)
     elif p.type is str:
         if not isinstance(value, str):
             raise ParameterError(f"bdpt: parameter '{p.name}' must be a string, got {value!r}")
