@@ -243,3 +243,19 @@ def test_vm_converges_to_bdpt_on_a_diffuse_box():
     se_b = np.sqrt(a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0])
     bad = diff > 4 * se_b + 0.03 * b.mean(0)
     assert not bad.any(), f'{bad.sum()} blocks off, worst {(diff / np.maximum(b.mean(0), 1e-9)).max():.3f}'
+
+
+def test_a_bucket_shared_by_neighbouring_cells_is_read_once():
+    """merge.Merger.ranges over the 2 x 2 x 2 cells around a point: where several of the cells
+    hash to one bucket (here all eight: a table of one bucket holding 5 entries), its entries
+    are visited once, not once per cell (which would count those light vertices up to 8 times)."""
+    from bdpt_jit.merge import MergeSchedule, Merger, PhotonGrid
+    scene = plane_scene()
+    grid = PhotonGrid.__new__(PhotonGrid)
+    grid.origin = mi.Point3f(0.0)
+    grid.mask = dr.opaque(mi.UInt32, 0)                      # one bucket
+    grid.schedule = MergeSchedule(scene, 0.01, 0.75, 1, 1, 16)
+    grid.start = mi.UInt32([0, 5])                            # bucket 0: entries 0..4
+    starts, totals = Merger(None, grid).ranges(mi.Point3f([0.3, 1.7], [0.2, -0.4], [0.0, 0.0]), mi.UInt32(0))
+    assert np.array(totals[8]).tolist() == [5, 5]
+    assert np.array(starts[0]).tolist() == [0, 0]
