@@ -153,12 +153,15 @@ def intersect(c, ray, active, primary=False):
     """scene.ray_intersect; in a differentiable pass the hit is a material point of its shape
     (RayFlags.FollowShape): it moves with the shape's parameters. A camera ray's first hit
     slides along its ray instead (``primary``): a pixel sees through a fixed footprint of
-    directions, so its first vertex is parametrised by the direction (solid angle)."""
+    directions, so its first vertex is parametrised by the direction (solid angle). Hits on
+    triangle meshes are moved onto their triangle's plane (rays.RayOffsets.project_to_triangle)."""
     if primary:
         check_technique(c)
     if not c.ad or primary:
-        return c.scene.ray_intersect(ray, active)
-    return c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+        si = c.scene.ray_intersect(ray, active)
+    else:
+        si = c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+    return c.offsets.project_to_triangle(si, active)      # rays.py: the mesh error bound assumes it
 
 
 def attach_wi(c, si, prev_p):
