@@ -105,7 +105,7 @@ class RayOffsets:
         mesh = active & si.is_valid() & known & (dr.gather(mi.Float, self.rel, idx, known) == MESH_REL)
         meshp = mi.MeshPtr(si.shape)
         fi = meshp.face_indices(si.prim_index, mesh)
-        p0 = meshp.vertex_position(fi.x, mesh)
+        p0 = dr.detach(meshp.vertex_position(fi.x, mesh))   # (a differentiated mesh: its positions track)
         n = dr.detach(si.n)
         h = dr.dot(dr.detach(si.p) - p0, n)
         si.p = dr.select(mesh, si.p - n * h, si.p)
