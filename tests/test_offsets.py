@@ -231,6 +231,7 @@ def test_mesh_hit_points_lie_on_their_triangle(translate):
     normal /= np.linalg.norm(normal, axis=1)[:, None]
     valid = np.array(si.is_valid())
     unit = np.array(offsets.error(si.p, si.shape), np.float64) / MESH_ULPS   # 2^-24 max(|p|, M_shape)
+    unit = np.where(valid, unit, 1.0)              # (a ray that escaped: no point)
     def off_plane(p):
         return (np.sum((p - tri[0]) * normal, axis=1) / unit)[valid]
     assert np.abs(off_plane(np.array(si.p, np.float64).T)).max() < 1.5
