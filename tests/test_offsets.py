@@ -203,8 +203,8 @@ def test_every_strategy_is_the_same_at_every_scale(placement):
         assert abs(rel) < (1e-4 if exact else 5e-3), f'{placement}: strategy {name} {rel * 100:+.3f}%'
 
 
-@pytest.mark.parametrize('translate', [(0.0, 0.0, 0.0), (1e4, -1e4, 1e4), (3e4, 0.0, 0.0)],
-                         ids=['origin', 'move_1e4_xyz', 'move_3e4_x'])
+@pytest.mark.parametrize('translate', [(1e2, 0.0, 0.0), (1e4, -1e4, 1e4), (3e4, 0.0, 0.0)],
+                         ids=['move_1e2_x', 'move_1e4_xyz', 'move_3e4_x'])
 def test_mesh_hit_points_lie_on_their_triangle(translate):
     """rays.RayOffsets.project_to_triangle: a hit on a triangle mesh is moved onto its
     triangle's plane, which is what lets meshes use the smaller bound MESH_REL. Checked in
@@ -239,3 +239,46 @@ def test_mesh_hit_points_lie_on_their_triangle(translate):
     origin = offset_origin(si.p, si.n, offsets.error(si.p, si.shape), -ray.d)
     side = -np.sign(np.sum(d * normal, axis=1))[valid]
     assert (off_plane(np.array(origin, np.float64).T) * side).min() > 1.0
+
+
+def test_meshes_near_the_origin_are_not_projected():
+    """The projection is left out where a mesh's magnitude is small against its size (the
+    general bound is then ~1e-5 of the mesh): a render of the closed sphere at the origin traces
+    no projection, the sphere moved by 1e2 (magnitude 50x its size) does."""
+    from bdpt_jit.rays import ERR_REL, MESH_REL, RayOffsets
+    from test_analytic import sphere_scene
+    near = RayOffsets(sphere_scene(0.8))
+    far = RayOffsets(sphere_scene(0.8, translate=(1e2, 0.0, 0.0)))
+    assert not near.any_mesh and far.any_mesh
+    assert np.array(near.rel)[1:].max() == np.float32(ERR_REL)
+    assert np.float32(MESH_REL) in np.array(far.rel)
+
+
+def test_projected_hit_point_keeps_the_derivative_of_its_material_point():
+    """In a differentiable pass a hit is a material point of its shape (gradients.intersect):
+    translating the mesh by delta moves it by delta. The projection onto the triangle's plane
+    must not add the plane's own motion (a triangle vertex read with derivatives doubled the
+    derivative along the normal; a floor's FD test caught it)."""
+    from bdpt_jit.rays import RayOffsets
+    from test_analytic import sphere_scene
+    scene = sphere_scene(0.8, translate=(1e2, 0.0, 0.0))
+    offsets = RayOffsets(scene)
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith('vertex_positions')][0]
+    v = params[key]
+    dr.enable_grad(v)
+    params.update()
+    n = 64
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(n, c, np.float32)) for c in (1e2, 0.0, 0.0)]),
+                   mi.Vector3f(d.astype(np.float32).T))
+    si = scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, True)
+    assert offsets.any_mesh
+    si = offsets.project_to_triangle(si, True)
+    delta = np.array([0.3, -0.5, 0.7])
+    dr.set_grad(v, dr.ravel(mi.Point3f(*[mi.Float(np.full(dr.width(v) // 3, c, np.float32)) for c in delta])))
+    dr.forward_to(si.p)
+    grad = np.array(dr.grad(si.p), np.float64).T
+    assert np.abs(grad - delta).max() < 1e-4, np.abs(grad - delta).max()
