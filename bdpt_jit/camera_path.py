@@ -103,8 +103,10 @@ class CameraTracer:
             c.layers.add(0, depth + 1, film_pos, beta * le * (w * c.inv_spp), beta * le * c.inv_spp, escaped)
         return dr.select(escaped, beta * le * w, 0.0)
 
-    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None, err=None):
-        """s=1: emitter sampling from the camera vertex ``si``."""
+    def strategy_s1(self, si, bsdf, beta, d_vcm, d_vc, u, active, depth=None, film_pos=None, err=None,
+                    merge_z=True):
+        """s=1: emitter sampling from the camera vertex ``si`` (``merge_z``: whether a merge at
+        ``si`` is a strategy, mis.MIS.merge_here_camera)."""
         c = self.ctx
         ds, em_w = gradients.sample_direct(c, si, u, active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
@@ -123,14 +125,14 @@ class CameraTracer:
         pdf_direct_w, cos_e = c.emitters.direct_terms(ds, k)
         cos_z = dr.abs(dr.dot(si.n, ds.d))
         w = c.mis.weight_s1(d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z, pdf_rev_w,
-                            emitter_is_delta=k.delta)
+                            emitter_is_delta=k.delta, merge_z=merge_z)
         if c.layers is not None:
             value = beta * f * em_w * c.inv_spp
             c.layers.add(1, depth + 1, film_pos, value * w, value, active)
         return dr.select(active, beta * f * em_w * w, 0.0)
 
     def connect_one(self, record, st_v, slot, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None,
-                    level=None, err=None):
+                    level=None, err=None, merge_z=True):
         """s>=2, t>=2: camera vertex ``si`` connected to the stored light vertex ``slot`` (at
         ``level`` of the storage: needed by records that do not store the depth)."""
         c = self.ctx
@@ -157,13 +159,14 @@ class CameraTracer:
             v.d_vcm, v.d_vc, d_vcm, d_vc,
             pdf_w_to_a(pdf_c_w, dr.dot(y.n, d), dist2),
             pdf_w_to_a(pdf_l_w, dr.dot(si.n, d), dist2),
-            pdf_l_rev_w, pdf_c_rev_w)
+            pdf_l_rev_w, pdf_c_rev_w, merge_z)
         if c.layers is not None:
             c.layers.add(v_depth + 1, depth + 1, film_pos, contrib * (w * c.inv_spp), contrib * c.inv_spp, ok)
         return dr.select(ok, contrib * w, 0.0)
 
     @dr.syntax
-    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None, err=None):
+    def connect_all(self, store, idx, si, bsdf, depth, beta, d_vcm, d_vc, active, film_pos=None, err=None,
+                    merge_z=True):
         """Sum of the connections of camera vertex ``si`` to the light subpath of its sample."""
         c = self.ctx
         n_light, record, st_v, slot_of = store.count, store.record, store.v, store.slot   # read before the loop
@@ -174,24 +177,28 @@ class CameraTracer:
         err = c.offsets.error(si.p, si.shape) if err is None else err   # once for all connections of si
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.connect_one(record, st_v, slot_of(j, idx), si, bsdf, depth, beta, d_vcm, d_vc,
-                                  active, film_pos, level=j, err=err)
+                                  active, film_pos, level=j, err=err, merge_z=merge_z)
             j += 1
         return L
 
-    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err):
+    def advance(self, sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err, merge_here=True):
         """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
-        is a material point and the edge's derivative enters the throughput (gradients.py)."""
+        is a material point and the edge's derivative enters the throughput (gradients.py).
+        Also returns whether ``si`` scattered through a delta lobe (False without delta lobes)."""
         c = self.ctx
         u1, u2 = sampler.next_1d(), sampler.next_2d()
         ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
-            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err)
+            sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err, merge_here)
         si_next, beta, dist2 = gradients.next_vertex(c, True, si, bsdf, ray, (u1, u2), is_delta, beta, active)
-        return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
+        was_delta = is_delta if is_delta is not None else mi.Bool(False)
+        return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2, was_delta
 
-    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err):
+    def scatter(self, sampler, u1, u2, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err,
+                merge_here=True):
         """Sample the next direction (lobe and direction samples ``u1``, ``u2``); update
         throughput, MIS quantities and the roulette. Returns the next ray, the updated state
-        and the delta mask (None in scenes without delta lobes)."""
+        and the delta mask (None in scenes without delta lobes). ``merge_here``: whether a merge
+        at ``si`` is a strategy (mis.MIS.merge_here_camera)."""
         c = self.ctx
         bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_RADIANCE, si, u1, u2, active)
         active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
@@ -206,8 +213,9 @@ class CameraTracer:
             pdf_rev_w = reverse_pdf_w(bsdf, CTX_RADIANCE, si, bs.wo, active, c.diffuse)
         cos_out = dr.abs(dr.dot(si.n, wo_world))
         if c.mis.mis_merges:
-            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
-        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta, camera_side=True)
+            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta, merge_here)
+        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta, camera_side=True,
+                                       merge_here=merge_here)
         if c.strategies.ppm:        # vm: only delta lobes go on (a smooth one was merged)
             active &= is_delta if is_delta is not None else False
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
@@ -246,6 +254,7 @@ class CameraTracer:
         d_vm = dr.zeros(mi.Float, n)                  # [VCM (31)-(33)] no merge behind the camera
         depth = mi.UInt32(1)                          # edges from the camera to si
         prev = dr.zeros(mi.Interaction3f, n)          # previous camera vertex (depth > 1)
+        prev_delta = dr.zeros(mi.Bool, n)             # it scattered through a delta lobe (the camera: no)
 
         while dr.hint(active, label='bdpt_camera_subpath'):
             bsdf = si.bsdf(ray)
@@ -257,23 +266,26 @@ class CameraTracer:
 
             active &= depth + 1 <= max_edges          # every strategy below adds an edge
             smooth = active & smooth_mask(bsdf, c.diffuse)
+            merge_here = mis.merge_here_camera(prev_delta)   # a merge at si is a strategy (mis.py)
 
             # ---------------- s = 1: emitter sampling ----------------
             if dr.hint(c.strategies.trace_s1, mode='scalar'):
-                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos, err)
+                L += self.strategy_s1(si, bsdf, beta, d_vcm, d_vc, sampler.next_2d(), smooth, depth, film_pos, err,
+                                      merge_here)
 
             # ---------------- s >= 2: connect to the light subpath ----------------
             if dr.hint(c.strategies.trace_connect, mode='scalar'):
-                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos, err)
+                L += self.connect_all(store, idx, si, bsdf, depth, beta, d_vcm, d_vc, smooth, film_pos, err,
+                                      merge_here)
 
             # ---------------- merges with the light vertices within the radius ----------------
             if dr.hint(c.strategies.trace_merge, mode='scalar'):
-                L += merger.gather(idx, si, bsdf, depth, beta, d_vcm, d_vm, smooth)
+                L += merger.gather(idx, si, bsdf, depth, beta, d_vcm, d_vm, smooth & merge_here)
 
             # ---------------- continue the walk ----------------
             prev = mi.Interaction3f(si)
-            ray, si, beta, d_vcm, d_vc, d_vm, active, dist2 = self.advance(
-                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err)
+            ray, si, beta, d_vcm, d_vc, d_vm, active, dist2, prev_delta = self.advance(
+                sampler, si, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active, err, merge_here)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('camera', active, si.is_valid())
             if dr.hint(c.strategies.trace_env, mode='scalar'):

@@ -74,19 +74,23 @@ class Context:
         self.unbounded = settings['max_depth'] < 0
         self.max_depth_edges = UNBOUNDED if self.unbounded else settings['max_depth']
         self.hide_emitters = settings['hide_emitters']
-        self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
+        self.has_delta = scene_has_delta_bsdf(scene)
+        merge_everywhere = bool(settings.get('merge_everywhere', False))
+        technique = settings['technique']
+        if technique == 'vcm' and not merge_everywhere and not self.has_delta:
+            technique = 'bdpt'      # merges only behind delta vertices, and the scene has none (mis.py)
+        self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
                                                 self.camera, self.hide_emitters)
         self.ad = ad
         if ad_geometry:
             # derivatives with respect to geometry: light-tracing splats land where their vertex
             # projects, and moving geometry moves them across pixels (a boundary term bdpt does
             # not have): their strategies leave the partition of unity (gradients.py)
-            self.strategies = StrategySet.for_scene(settings['technique'], self.max_depth_edges, self.emitters,
+            self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
                                                     _NoSplats(self.camera), self.hide_emitters)
-        self.has_delta = scene_has_delta_bsdf(scene)
         # geometry next to mirrors and glass: chains differentiated from the camera side only
         self.mis = MIS(settings['mis'], self.strategies, detached=ad,
-                       camera_chains=bool(ad_geometry) and self.has_delta)
+                       camera_chains=bool(ad_geometry) and self.has_delta, merge_everywhere=merge_everywhere)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
         self.exact_adjoint = scene_perturbs_normals(scene)

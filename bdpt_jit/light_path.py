@@ -96,9 +96,11 @@ class LightTracer:
         beta_start = dr.max(beta)
         idx = dr.arange(mi.UInt32, n)
         count = dr.zeros(mi.UInt32, n)
+        # a merge's terms waiting for the next vertex (mis.MIS.pending; none behind y0)
+        pend = (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)) if c.mis.pending else (mi.Float(0.0), mi.Float(0.0))
         while True:
-            active, si, beta, d_vcm, d_vc, d_vm, depth, count = self.walk(
-                sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, depth, count)
+            active, si, beta, d_vcm, d_vc, d_vm, pend, depth, count = self.walk(
+                sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, pend, depth, count)
             if store is None:
                 break
             store.count = count
@@ -127,20 +129,21 @@ class LightTracer:
         if c.layers is not None:
             c.layers.add(depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
-    def advance(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active):
+    def advance(self, sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, pend, active):
         """Scatter at ``si`` and find the next vertex. In a differentiable pass the next vertex
         is a material point and the edge's derivative enters the throughput (gradients.py)."""
         c = self.ctx
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        ray, beta, d_vcm, d_vc, d_vm, active, is_delta = self.scatter(
-            sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active)
+        ray, beta, d_vcm, d_vc, d_vm, pend, active, is_delta = self.scatter(
+            sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, pend, active)
         si_next, beta, dist2 = gradients.next_vertex(c, False, si, bsdf, ray, (u1, u2), is_delta, beta, active)
-        return ray, si_next, beta, d_vcm, d_vc, d_vm, active, dist2
+        return ray, si_next, beta, d_vcm, d_vc, d_vm, pend, active, dist2
 
-    def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active):
+    def scatter(self, sampler, u1, u2, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, pend, active):
         """Sample the next direction in importance mode (the adjoint BSDF; lobe and direction
         samples ``u1``, ``u2``); update throughput, MIS quantities and the roulette. Returns the
-        next ray, the updated state and the delta mask (None without delta lobes)."""
+        next ray, the updated state and the delta mask (None without delta lobes). ``pend``: the
+        previous vertex's merge terms (mis.MIS.pending), counted here if this vertex is delta."""
         c = self.ctx
         beta_in = beta
         bs, bsdf_w = gradients.sample_bsdf(c, bsdf, CTX_IMPORTANCE, si, u1, u2, active)
@@ -165,18 +168,22 @@ class LightTracer:
         if c.ad:   # the factor without derivatives: the edge's derivative comes with edge_ratio
             beta = mi.Spectrum(beta_in * dr.detach(beta * safe_div(1.0, dr.detach(beta_in))))
         cos_out = dr.abs(dr.dot(si.n, wo_world))
+        here = not c.mis.pending                  # a merge here: deferred to the next vertex (mis.py)
+        if c.mis.pending:
+            d_vc, d_vm = c.mis.absorb_pending(d_vc, d_vm, pend[0], pend[1], is_delta)
+            pend = c.mis.pending_after_scatter(cos_out, bs.pdf, is_delta)
         if c.mis.mis_merges:
-            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta)
-        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta)
+            d_vm = c.mis.vm_on_scatter(d_vm, d_vcm, cos_out, bs.pdf, pdf_rev_w, is_delta, here)
+        d_vcm, d_vc = c.mis.on_scatter(d_vcm, d_vc, cos_out, bs.pdf, pdf_rev_w, is_delta, merge_here=here)
         if c.mis.camera_chains and is_delta is not None:
             active &= ~is_delta       # delta chains are crossed from the camera side only (mis.py)
         # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
         beta, active = roulette(beta, beta_start, depth, c.rr_depth, active, sampler.next_1d())
         ray = spawn(si.p, si.n, err, wo_world, si.time, si.wavelengths)
-        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, d_vm, active, is_delta
+        return (dr.detach(ray) if c.ad else ray), beta, d_vcm, d_vc, d_vm, pend, active, is_delta
 
     @dr.syntax
-    def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, depth, count):
+    def walk(self, sampler, idx, film, store, active, si, beta, beta_start, d_vcm, d_vc, d_vm, pend, depth, count):
         c = self.ctx
         max_edges = c.max_depth_edges
         store_on = store is not None
@@ -210,13 +217,16 @@ class LightTracer:
 
             # ---------------- continue the walk ----------------
             active &= depth + 2 <= max_edges
-            ray, si, beta, d_vcm, d_vc, d_vm, active, dist2 = self.advance(
-                sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, active)
+            ray, si, beta, d_vcm, d_vc, d_vm, pend, active, dist2 = self.advance(
+                sampler, si, err, bsdf, depth, beta, beta_start, d_vcm, d_vc, d_vm, pend, active)
             if dr.hint(c.stats is not None, mode='scalar'):
                 c.stats.ray('light', active, si.is_valid())
             active &= si.is_valid()
             d_vcm, d_vc = c.mis.on_hit(d_vcm, d_vc, dist2, dr.abs(dr.dot(si.n, ray.d)))
             if dr.hint(c.mis.mis_merges, mode='scalar'):
                 d_vm = c.mis.vm_on_hit(d_vm, dr.abs(dr.dot(si.n, ray.d)))
+            if dr.hint(c.mis.pending, mode='scalar'):
+                pend = (c.mis.vm_on_hit(pend[0], dr.abs(dr.dot(si.n, ray.d))),
+                        c.mis.vm_on_hit(pend[1], dr.abs(dr.dot(si.n, ray.d))))
             depth += 1
-        return active, si, beta, d_vcm, d_vc, d_vm, depth, count
+        return active, si, beta, d_vcm, d_vc, d_vm, pend, depth, count

@@ -42,11 +42,30 @@ Georgiev, Krivanek, Davidovic and Slusallek, "Implementing Vertex Connection and
 terms enter the connection weights through ``vm_factor`` = h(eta) and the merging weights
 through ``vc_factor`` = h(1/eta) (0 for a family the technique does not use). Technique ``vm``
 (progressive photon mapping) needs no weights: its strategies are a partition (strategies.py).
+
+Where merging is offered (``merge_everywhere``): Georgiev et al. merge at every non-delta
+interior vertex. By default this code merges only at a vertex whose camera-side neighbour is a
+delta vertex (the camera reached it through a mirror or glass): the specular-diffuse-specular
+paths that no connection samples all have one, and a merge anywhere else only duplicates a
+connection at the cost of a gather. The strategy set is then still a function of the path, so
+the weights still sum to one: the camera side knows the neighbour when it scatters (its previous
+vertex), and the light side learns it one vertex later, so the term of a merge at a light vertex
+waits in ``pend_vc``/``pend_vm`` until the next vertex turns out delta (``absorb_pending``) or
+not (dropped); the last light vertex of a connection, splat or merge has a non-delta neighbour.
 """
 
 import drjit as dr
 
 from .strategies import StrategySet
+
+
+def _gate(x, ok):
+    """x where ``ok`` (a mask, or True/False), else 0."""
+    if ok is True:
+        return x
+    if ok is False:
+        return 0.0 * x
+    return dr.select(ok, x, 0.0 * x)
 
 
 def _finite(w):
@@ -63,7 +82,8 @@ class MIS:
     arrays (or Python floats), so they trace into any kernel, symbolic or evaluated, and
     differentiate."""
 
-    def __init__(self, kind: str = 'power', strategies='bdpt', detached=False, camera_chains=False):
+    def __init__(self, kind: str = 'power', strategies='bdpt', detached=False, camera_chains=False,
+                 merge_everywhere=False):
         if kind not in ('power', 'balance', 'uniform'):
             raise ValueError(f"mis must be power, balance or uniform, got {kind!r}")
         if isinstance(strategies, str):
@@ -79,6 +99,9 @@ class MIS:
         self.vm_factor = 0.0          # h(eta): set per pass by set_radius (merges)
         self.vc_factor = 0.0          # h(1/eta)
         self.mis_merges = strategies.merges and not strategies.ppm
+        # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
+        self.merge_everywhere = merge_everywhere
+        self.pending = self.mis_merges and not merge_everywhere     # light side defers its merge terms
 
     def set_radius(self, eta):
         """The pass's eta = pi r^2 N (an opaque mi.Float: changing it recompiles nothing)."""
@@ -135,14 +158,18 @@ class MIS:
         d_vc = d_vc / self.h(cos_hit)                       # [eq. 9, 22]
         return d_vcm, d_vc
 
-    def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side=False):
+    def on_scatter(self, d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side=False,
+                   merge_here=True):
         """Update at a vertex after sampling the next direction. ``pdf_fwd_w``: density of the
         sampled direction; ``pdf_rev_w``: density of sampling the incoming direction given the
         outgoing one; ``cos_out``: |cos| of the outgoing direction (geometric normal).
         ``is_delta=None``: the scene has no delta lobe, and the delta case is not traced.
-        ``camera_side``: a camera subpath's vertex (see ``camera_chains``)."""
+        ``camera_side``: a camera subpath's vertex (see ``camera_chains``). ``merge_here``:
+        whether a merge at this vertex is a strategy (``merge_here_camera``; False on the light
+        side when its term is deferred, ``pending_after_scatter``)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
-        d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm + self.vm_factor)  # [eq. 21, 22] vcm_i, [VCM (35)]
+        d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm
+                                                   + _gate(self.vm_factor, merge_here))  # [eq. 21, 22] vcm_i, [VCM (35)]
         d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
         if is_delta is None:
             return d_vcm_smooth, d_vc_smooth
@@ -165,15 +192,40 @@ class MIS:
     def vm_on_hit(self, d_vm, cos_hit):
         return d_vm / self.h(cos_hit)                        # [VCM (33), (36)] area measure at the hit
 
-    def vm_on_scatter(self, d_vm, d_vcm, cos_out, pdf_fwd_w, pdf_rev_w, is_delta):
+    def vm_on_scatter(self, d_vm, d_vcm, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, merge_here=True):
         """d_vm after sampling the next direction; ``d_vcm``: the value before this scatter
         (the other arguments as on_scatter's)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
-        d_vm_smooth = self.h(cos_out * inv_fwd) * (d_vm * self.h(pdf_rev_w)
-                                                   + d_vcm * self.vc_factor + 1.0)   # [VCM (36)]
+        d_vm_smooth = self.h(cos_out * inv_fwd) * (d_vm * self.h(pdf_rev_w) + d_vcm * self.vc_factor
+                                                   + _gate(1.0 + 0.0 * d_vm, merge_here))   # [VCM (36)]
         if is_delta is None:
             return d_vm_smooth
         return dr.select(is_delta, d_vm * self.h(cos_out), d_vm_smooth)              # [VCM (36)] delta
+
+    # ------------------------------------------------------------------ where merges exist
+    def merge_here_camera(self, prev_delta):
+        """Whether a merge at a camera vertex is a strategy, from whether the camera subpath's
+        previous vertex was delta (False at the first hit: the camera is not). True where the
+        weights have no merges (vm_factor 0) and for ``vm`` (its own rule: strategies.py)."""
+        return True if (self.merge_everywhere or not self.mis_merges) else prev_delta
+
+    def pending_after_scatter(self, cos_out, pdf_fwd_w, is_delta):
+        """Light side (merges behind delta vertices only): the terms that a merge at the vertex
+        just scattered from adds to (d_vc, d_vm) [VCM (35), (36)], kept apart until the next vertex
+        shows whether it is delta (0 where this one is delta: no merge there)."""
+        inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
+        g = self.h(cos_out * inv_fwd)
+        pend_vc, pend_vm = g * self.vm_factor, g
+        if is_delta is None:
+            return pend_vc, pend_vm
+        return dr.select(is_delta, 0.0, pend_vc), dr.select(is_delta, 0.0, pend_vm)
+
+    def absorb_pending(self, d_vc, d_vm, pend_vc, pend_vm, is_delta):
+        """Light side, at the scatter of the next vertex (before on_scatter): the previous
+        vertex's merge counts where this vertex is delta; elsewhere it is dropped."""
+        if is_delta is None:
+            return d_vc, d_vm
+        return d_vc + dr.select(is_delta, pend_vc, 0.0), d_vm + dr.select(is_delta, pend_vm, 0.0)
 
     # ------------------------------------------------------------------ weights
     def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w):
@@ -190,13 +242,14 @@ class MIS:
         return _finite(1.0 / (1.0 + w_camera))              # [eq. 20] w_light = 0
 
     def weight_s1(self, d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z,
-                  pdf_rev_w, emitter_is_delta=False):
+                  pdf_rev_w, emitter_is_delta=False, merge_z=True):
         """Emitter sampling (s=1, t>=2) at camera vertex z. ``pdf_bsdf_w``: z's BSDF density
         towards the emitter point; ``pdf_direct_w``: emitter sampling density per unit solid
         angle at z (for delta-position emitters their discrete density times d^2);
         ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``, ``cos_z``:
         |cos| at the emitter point (1 for point and infinite emitters) and at z; ``pdf_rev_w``:
-        z's BSDF density of its incoming direction given the emitter direction."""
+        z's BSDF density of its incoming direction given the emitter direction; ``merge_z``:
+        whether a merge at z is a strategy (merge_here_camera)."""
         if not self.s.direct:
             return 0.0 * d_vcm
         w_light = self.h(pdf_bsdf_w / pdf_direct_w)                               # [eq. 20] strategy s=0
@@ -205,20 +258,25 @@ class MIS:
         if not self.s.connections:
             return _finite(1.0 / (w_light + 1.0))           # [eq. 20] w_camera = 0
         w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22], [VCM (45)]
-                    * (self.vm_factor + d_vcm + d_vc * self.h(pdf_rev_w)))
+                    * (_gate(self.vm_factor, merge_z) + d_vcm + d_vc * self.h(pdf_rev_w)))
         return _finite(1.0 / (w_light + 1.0 + w_camera))    # [eq. 20]
 
     def weight_connect(self, l_vcm, l_vc, c_vcm, c_vc, pdf_cam_to_light_a, pdf_light_to_cam_a,
-                       pdf_light_rev_w, pdf_cam_rev_w):
+                       pdf_light_rev_w, pdf_cam_rev_w, merge_z=True):
         """Connection of light vertex y_{s-1} and camera vertex z_{t-1} (s,t>=2).
         ``pdf_cam_to_light_a``: z's BSDF density of y (per unit area at y);
         ``pdf_light_to_cam_a``: y's BSDF density of z (per unit area at z);
         ``pdf_light_rev_w``: y's density of its incoming direction given the direction to z;
-        ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y."""
+        ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y;
+        ``merge_z``: whether a merge at z is a strategy (merge_here_camera). A merge at y is one
+        only where merges are everywhere (y's camera-side neighbour is z, not delta)."""
         if not self.s.connections:
             return 0.0 * l_vcm
-        w_light = self.h(pdf_cam_to_light_a) * (self.vm_factor + l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22], [VCM (40)]
-        w_camera = self.h(pdf_light_to_cam_a) * (self.vm_factor + c_vcm + c_vc * self.h(pdf_cam_rev_w))   # [eq. 21, 22], [VCM (41)]
+        merge_y = self.merge_everywhere
+        w_light = self.h(pdf_cam_to_light_a) * (_gate(self.vm_factor, merge_y) + l_vcm
+                                                + l_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
+        w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + c_vcm
+                                                 + c_vc * self.h(pdf_cam_rev_w))    # [eq. 21, 22], [VCM (41)]
         return _finite(1.0 / (w_light + 1.0 + w_camera))                                    # [eq. 20]
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
@@ -228,7 +286,9 @@ class MIS:
             return 0.0 * l_vcm
         if not (self.s.hits or self.s.direct or self.s.connections):
             return 1.0 + 0.0 * l_vcm                        # light tracing alone (lt)
-        w_light = self.h(pdf_cam_a) * (self.vm_factor + l_vcm + l_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22], [VCM (46)]
+        merge_y = self.merge_everywhere            # y's camera-side neighbour: the camera, not delta
+        w_light = self.h(pdf_cam_a) * (_gate(self.vm_factor, merge_y) + l_vcm
+                                       + l_vc * self.h(pdf_light_rev_w))            # [eq. 21, 22], [VCM (46)]
         return _finite(1.0 / (w_light + 1.0))                                    # [eq. 20] w_camera = 0
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):

@@ -63,6 +63,12 @@ PARAMS = (
           'over every render of this integrator, from 1) merges within r_i = r_1 i^((alpha-1)/2) '
           '(Knaus and Zwicker 2011); 1 keeps the radius fixed.',
           minimum=0.0, maximum=1.0, exclusive_minimum=True),
+    Param('merge_everywhere', bool, False,
+          '`vcm`: merge at every non-specular camera vertex, as Georgiev et al. do. By default a '
+          'camera vertex merges only where the camera reached it through a specular (delta) vertex: '
+          'the specular-diffuse-specular paths that no connection samples all pass there, and a '
+          'merge elsewhere only adds a gather beside a connection (in a scene without specular '
+          'surfaces `vcm` then renders as `bdpt`). The MIS weights follow either choice.'),
     Param('hide_emitters', bool, False,
           'Hide directly visible emitters, as in Mitsuba\'s `path`.'),
     Param('strategy_images', bool, False,

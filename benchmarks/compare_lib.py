@@ -159,6 +159,10 @@ CONTESTANTS = [
     Contestant('bdpt-lt', 'bdpt lt', {'type': 'bdpt', 'technique': 'lt'}),
     # vertex connection and merging (issue 15), radius and radius_alpha at the integrator's defaults
     Contestant('vcm', 'bdpt vcm', {'type': 'bdpt', 'technique': 'vcm'}, progressive=True),
+    # Georgiev et al.'s set of merges (every non-specular camera vertex) instead of the default (behind a
+    # specular vertex only)
+    Contestant('vcm-all', 'bdpt vcm everywhere', {'type': 'bdpt', 'technique': 'vcm', 'merge_everywhere': True},
+               progressive=True),
     Contestant('vm', 'bdpt vm', {'type': 'bdpt', 'technique': 'vm'}, progressive=True),
     Contestant('path', 'Mitsuba path', {'type': 'path'}, replica=True),
     Contestant('ptracer', 'Mitsuba ptracer', {'type': 'ptracer'}, replica=True),

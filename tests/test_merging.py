@@ -143,17 +143,31 @@ def test_vm_refuses_what_it_cannot_render():
 
 
 def test_vcm_agrees_with_bdpt_on_a_diffuse_box():
-    """No path of a diffuse Cornell box needs merging; at a small radius vcm's bias (the blur of
-    the merges, weighted by their MIS weights) is below the noise of this test, so its image must
-    agree with bdpt's per pixel and per block (merges carry little weight at this radius: the
-    partition is tested sharply by test_closed_sphere)."""
+    """No path of a diffuse Cornell box needs merging; with merges at every vertex
+    (merge_everywhere) and a small radius, vcm's bias (the blur of the merges, weighted by their
+    MIS weights) is below the noise of this test, so its image must agree with bdpt's per pixel
+    and per block (merges carry little weight at this radius: the partition is tested sharply by
+    test_closed_sphere)."""
     load = lambda: cornell_scene(16)                                     # noqa: E731
     ref = reference(('cornell16', 'merging'), load, {'type': 'bdpt', 'max_depth': 5}, 64, 8, 900)
     scene = load()
-    got = render_batches(scene, {'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm', 'radius': 0.004},
-                         64, 8, seed0=0)
+    got = render_batches(scene, {'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm', 'radius': 0.004,
+                                 'merge_everywhere': True}, 64, 8, seed0=0)
     ok, msg = agreement(got, ref)
     assert ok, msg
+
+
+def test_vcm_without_specular_surfaces_is_bdpt():
+    """By default a camera vertex merges only behind a delta vertex (mis.py): in a scene without
+    one there is no merge, and vcm renders bdpt's pixels (same seed, same kernels); with
+    merge_everywhere it does not (the merges change the pixels)."""
+    scene = cornell_scene(16)
+    bdpt = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 5}), spp=4, seed=3))
+    vcm = mi.load_dict({'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm'})
+    assert np.array_equal(np.array(mi.render(scene, integrator=vcm, spp=4, seed=3)), bdpt)
+    assert 'merge_iteration' not in vcm.last_render_info
+    everywhere = mi.load_dict({'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm', 'merge_everywhere': True})
+    assert not np.array_equal(np.array(mi.render(scene, integrator=everywhere, spp=4, seed=3)), bdpt)
 
 
 @pytest.mark.parametrize('technique,mis,radius', [('vcm', 'power', 0.05), ('vcm', 'balance', 0.05),
@@ -180,8 +194,11 @@ def test_closed_sphere(technique, mis, radius):
                    'sampler': {'type': 'independent'}},
         'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
     })
+    # (a diffuse enclosure: vcm merges only with merge_everywhere, and would otherwise be bdpt)
+    everywhere = {'merge_everywhere': True} if technique == 'vcm' else {}
     b = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique, 'mis': mis,
-                               'radius': radius / scene_radius(scene), 'radius_alpha': 1.0}, spp=16, batches=16)
+                               'radius': radius / scene_radius(scene), 'radius_alpha': 1.0, **everywhere},
+                       spp=16, batches=16)
     expected = LE * sum(rho ** k for k in range(max_depth))
     per_batch = b.mean(axis=(1, 2, 3))
     mean, sigma = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))

@@ -100,10 +100,14 @@ def allowed(technique, k, s, P):
     return ok
 
 
-def merge_allowed(k, i, P):
+def merge_allowed(k, i, P, everywhere=False):
     """Merging at x_i: an interior vertex (a light vertex y_i, i >= 1, met by a camera vertex
-    z_{k-i}, k-i >= 1) with a smooth BSDF."""
-    return ~P['delta'][:, i] if 1 <= i <= k - 1 else np.zeros(M, bool)
+    z_{k-i}, k-i >= 1) with a smooth BSDF; unless merges are everywhere (``vcm_all``: technique
+    vcm with merge_everywhere), one whose camera-side neighbour x_{i+1} is delta."""
+    if not 1 <= i <= k - 1:
+        return np.zeros(M, bool)
+    ok = ~P['delta'][:, i]
+    return ok if everywhere else ok & P['delta'][:, i + 1]
 
 
 def camera_density(P, i):
@@ -120,6 +124,8 @@ def chain_free(k, s, P):
 
 
 def brute_force(kind, technique, P, p_lens=None, chains=False):
+    everywhere = technique == 'vcm_all'
+    technique = 'vcm' if everywhere else technique
     k = P['k']
     d2, cosA, cosB, pL, pE = P['d2'], P['cosA'], P['cosB'], P['pL'], P['pE']
     beta = {'power': 2.0, 'balance': 1.0}.get(kind)
@@ -159,7 +165,7 @@ def brute_force(kind, technique, P, p_lens=None, chains=False):
         ok = allowed(technique, k, s, P) & (chain_free(k, s, P) if chains else True)
         dens.append(np.where(ok, p, 0.0))
     if technique == 'vcm':
-        dens += [np.where(merge_allowed(k, i, P), raw[i + 1] * camera_density(P, i) * P['eta'], 0.0)
+        dens += [np.where(merge_allowed(k, i, P, everywhere), raw[i + 1] * camera_density(P, i) * P['eta'], 0.0)
                  for i in range(1, k)]
     dens = np.array(dens)
     if kind == 'uniform':
@@ -172,9 +178,12 @@ def brute_force(kind, technique, P, p_lens=None, chains=False):
 
 
 def recursive(kind, technique, P, chains=False):
+    everywhere = technique == 'vcm_all'
+    technique = 'vcm' if everywhere else technique
     k = P['k']
     reachable = P.get('camera') != 'delta'
-    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable), camera_chains=chains)
+    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable), camera_chains=chains,
+              merge_everywhere=everywhere)
     F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
     B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
@@ -200,12 +209,17 @@ def recursive(kind, technique, P, chains=False):
         p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
         d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(p_direct), F(d2_0), F(cosB[:, 0]))
         d_vm = mis.vm_on_hit(d_vm, F(cosB[:, 0]))
+        pend_vc = pend_vm = F(np.zeros(M))
         for i in range(1, last):
             args = (F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
-            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args)
+            if mis.pending:                                  # the merge at x_{i-1} counts if x_i is delta
+                d_vc, d_vm = mis.absorb_pending(d_vc, d_vm, pend_vc, pend_vm, B(delta_v[:, i]))
+                pend_vc, pend_vm = mis.pending_after_scatter(F(cosA[:, i]), F(pL[:, i]), B(delta_v[:, i]))
+            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args, merge_here=not mis.pending)
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, merge_here=not mis.pending)
             d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
             d_vm = mis.vm_on_hit(d_vm, F(cosB[:, i]))
+            pend_vc, pend_vm = mis.vm_on_hit(pend_vc, F(cosB[:, i])), mis.vm_on_hit(pend_vm, F(cosB[:, i]))
         return d_vcm, d_vc, d_vm
 
     def camera_state(last):                                  # at x_last (last <= k-1): (d_vcm, d_vc, d_vm)
@@ -215,8 +229,9 @@ def recursive(kind, technique, P, chains=False):
         d_vm = mis.vm_on_hit(d_vm, F(cosA[:, k - 1]))
         for i in range(k - 1, last, -1):
             args = (F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
-            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, camera_side=True)
+            here = mis.merge_here_camera(B(delta_v[:, i + 1]))   # the camera (x_k) is not delta
+            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args, merge_here=here)
+            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, camera_side=True, merge_here=here)
             if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
                 d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
                 d_vm = mis.vm_on_hit(d_vm, F(cosA[:, i - 1]))
@@ -247,7 +262,8 @@ def recursive(kind, technique, P, chains=False):
             else:
                 pdf_direct_w, cos_e = P['p_direct_a'], np.ones(M)
             w = mis.weight_s1(c_vcm, c_vc, F(pE[:, 1]), F(pdf_direct_w), pdf_emit_w,
-                              F(cos_e), F(cosB[:, 0]), F(pL[:, 1]), emitter_is_delta=B(np.full(M, delta)))
+                              F(cos_e), F(cosB[:, 0]), F(pL[:, 1]), emitter_is_delta=B(np.full(M, delta)),
+                              merge_z=mis.merge_here_camera(B(delta_v[:, 2])))
         elif t == 1:
             l_vcm, l_vc, _ = light_state(k - 1)
             w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]), F(pE[:, k - 1]))
@@ -257,7 +273,7 @@ def recursive(kind, technique, P, chains=False):
             w = mis.weight_connect(l_vcm, l_vc, c_vcm, c_vc,
                                    F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1]),
                                    F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1]),
-                                   F(pE[:, s - 1]), F(pL[:, s]))
+                                   F(pE[:, s - 1]), F(pL[:, s]), merge_z=mis.merge_here_camera(B(delta_v[:, s + 1])))
         w = np.array(w if isinstance(w, mi.Float) else mi.Float(w), dtype=np.float64)
         w = np.broadcast_to(w, (M,)) if w.size == 1 else w
         if not reachable and t == 1:
@@ -269,13 +285,13 @@ def recursive(kind, technique, P, chains=False):
             l_vcm, _, l_vm = light_state(i)
             c_vcm, _, c_vm = camera_state(i)
             w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i])), dtype=np.float64)
-            out.append(np.where(merge_allowed(k, i, P), w, 0.0))
+            out.append(np.where(merge_allowed(k, i, P, everywhere), w, 0.0))
     return np.array(out)
 
 
 @pytest.mark.parametrize('camera', ['pinhole', 'thinlens', 'delta'])
 @pytest.mark.parametrize('emitter', KINDS)
-@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt', 'vcm'])
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt', 'vcm', 'vcm_all'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', list(range(1, 11)))
 def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
@@ -291,8 +307,10 @@ def test_weights_partition_of_unity(k, kind, technique, emitter, camera):
     w_ref = brute_force(kind, technique, P, p_lens)
     assert np.all(np.isfinite(w_rec))
     assert np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
-    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]
-                            + ([merge_allowed(k, i, P) for i in range(1, k)] if technique == 'vcm' else [])).any(axis=0)
+    tech = 'vcm' if technique == 'vcm_all' else technique
+    any_strategy = np.array([allowed(tech, k, s, P) for s in range(k + 1)]
+                            + ([merge_allowed(k, i, P, technique == 'vcm_all') for i in range(1, k)]
+                               if tech == 'vcm' else [])).any(axis=0)
     total = w_rec.sum(axis=0)
     np.testing.assert_allclose(total[any_strategy], 1.0, rtol=1e-5)
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)

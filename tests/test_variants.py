@@ -93,8 +93,9 @@ def test_agrees_with_mitsuba_in_other_variants(tmp_path, variant, case, techniqu
     ref = batches(tmp_path, variant, case, {'type': 'path', 'max_depth': 4}, 1024, n=16, seed0=10_000)
     spp = 1024 if mis == 'uniform' else 512 if technique == 'lt' else 256
     integ = {'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'mis': mis}
-    if technique == 'vcm':      # one pass of every sample (one merging iteration), a small radius
-        integ.update(radius=0.004, samples_per_pass=1 << 16)
+    if technique == 'vcm':      # one pass of every sample (one merging iteration), a small radius;
+        # merges at every vertex: in these diffuse scenes vcm would otherwise merge nowhere (mis.py)
+        integ.update(radius=0.004, samples_per_pass=1 << 16, merge_everywhere=True)
     mine = batches(tmp_path, variant, case, integ, spp, n=16)
     assert np.all(np.isfinite(mine))
     ok, msg = agreement(mine, ref, alpha=0.01)
@@ -109,6 +110,8 @@ def test_light_and_camera_subpaths_share_wavelengths(tmp_path, technique):
     vertex merges with light vertices of other samples of its iteration: those must carry the
     same wavelengths)."""
     merging = {'radius': 0.05} if technique in ('vcm', 'vm') else {}
+    if technique == 'vcm':
+        merging['merge_everywhere'] = True     # a diffuse scene: by default vcm would merge nowhere
     img = batches(tmp_path, 'llvm_ad_spectral', 'narrow', {'type': 'bdpt', 'max_depth': 4,
                                                            'technique': technique, **merging}, 16, n=2)
     direct = batches(tmp_path, 'llvm_ad_spectral', 'narrow', {'type': 'bdpt', 'max_depth': 1,
