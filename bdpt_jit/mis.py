@@ -215,7 +215,8 @@ class MIS:
         shows whether it is delta (0 where this one is delta: no merge there)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
         g = self.h(cos_out * inv_fwd)
-        pend_vc, pend_vm = g * self.vm_factor, g
+        pend_vc = g * self.vm_factor                        # [VCM (35)] the merge at this vertex in d_vc
+        pend_vm = g                                         # [VCM (36)] and in d_vm
         if is_delta is None:
             return pend_vc, pend_vm
         return dr.select(is_delta, 0.0, pend_vc), dr.select(is_delta, 0.0, pend_vm)
@@ -225,7 +226,9 @@ class MIS:
         vertex's merge counts where this vertex is delta; elsewhere it is dropped."""
         if is_delta is None:
             return d_vc, d_vm
-        return d_vc + dr.select(is_delta, pend_vc, 0.0), d_vm + dr.select(is_delta, pend_vm, 0.0)
+        d_vc = d_vc + dr.select(is_delta, pend_vc, 0.0)     # [VCM (35)] deferred term, scaled as d_vc since
+        d_vm = d_vm + dr.select(is_delta, pend_vm, 0.0)     # [VCM (36)] deferred term, scaled as d_vm since
+        return d_vc, d_vm
 
     # ------------------------------------------------------------------ weights
     def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w):
