@@ -294,7 +294,7 @@ class EmitterTable(DirectSampling):
         ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
         e.active = ok
         # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
-        e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape()), mi.Float(0.0)) \
+        e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape(), hit=False), mi.Float(0.0)) \
             if k.surface is not False else mi.Float(0.0)
         n_off = sel(k.surface, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.surface is not False else mi.Normal3f(0.0)
         e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, wl)
@@ -347,7 +347,7 @@ class EmitterTable(DirectSampling):
         k = self.kinds(ds.emitter)
         if k.surface is False:
             return mi.Float(0.0)
-        return sel(k.surface, self.offsets.error(ds.p, ds.emitter.get_shape()), mi.Float(0.0))
+        return sel(k.surface, self.offsets.error(ds.p, ds.emitter.get_shape(), hit=False), mi.Float(0.0))
 
     @staticmethod
     def direct_terms(ds, k):

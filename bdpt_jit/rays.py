@@ -26,12 +26,12 @@ extent) get a tighter bound: Mitsuba interpolates a hit point from the three ver
 (about 3 units of 2^-24 max|p| off their plane, measured), and ``project_to_triangle`` moves it
 back onto the plane of its triangle (p - n ((p - p0) . n): p - p0 and the dot product are
 exact or small, one rounding remains): within 1.3 units of the plane on a mesh sphere at the
-origin, moved by 1e3, 1e4 and 3e4. Their offset is MESH_ULPS = 3 units (the origin then lies
-at least 2.3 units on its side of the plane, over 400k rays each), which matters because an
+origin, moved by 1e3, 1e4 and 3e4. Their hit points' offset is MESH_ULPS = 3 units (the origin
+then lies at least 2.3 units on its side of the plane, over 400k rays each), which matters because an
 offset has a cost of its own proportional to it: a concave surface (a closed sphere seen from
 inside) has a cap around each vertex that no ray from the offset origin reaches (n . (y - p) <
-offset): -0.2% with 8 units on a unit sphere moved by 1e4, about -0.08% with 3. Points
-sampled on a mesh (Mitsuba's ``sample_position``: p0 + e0 b0 + e1 b1) are as precise."""
+offset): -0.2% with 8 units on a unit sphere moved by 1e4, about -0.1% with 3. Points that
+Mitsuba samples on a mesh (emitter sampling) are not projected and keep the general bound."""
 
 import drjit as dr
 import mitsuba as mi
@@ -91,15 +91,18 @@ class RayOffsets:
         idx, known = self._known(shape)
         return dr.gather(mi.Float, self.table, idx, known)
 
-    def error(self, p, shape=None):
+    def error(self, p, shape=None, hit=True):
         """The bound ``err`` of a point ``p`` on ``shape`` (None: a point not on a surface
-        interpolated from a shape, e.g. a position sample: its own magnitude)."""
+        interpolated from a shape: its own magnitude). ``hit``: a ray's hit point, projected onto
+        its triangle on the meshes that project (gradients.intersect); False: a position Mitsuba
+        sampled on the shape (emitter sampling), which keeps the general bound (on the sphere mesh
+        moved by 1e4 such points lie up to 2.2 units off their triangle's plane)."""
         m = dr.max(dr.abs(p))
         if shape is None:
             return ERR_REL * m
         idx, known = self._known(shape)
         m = dr.maximum(m, dr.gather(mi.Float, self.table, idx, known))
-        if not self.any_mesh:
+        if not self.any_mesh or not hit:
             return ERR_REL * m
         rel = dr.select(known, dr.gather(mi.Float, self.rel, idx, known), ERR_REL)
         return rel * m
