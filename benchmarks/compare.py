@@ -1,7 +1,8 @@
 """Comparison benchmarks of `bdpt` against Mitsuba's `path` and `ptracer`: error against run time.
 
 `bdpt` (power, balance and uniform MIS; technique pt and lt; vertex connection and merging, technique
-vcm, and vertex merging alone, technique vm) and Mitsuba's `path` and `ptracer`, on the paper's scenes,
+vcm, also with merges at every vertex, `vcm-all`, and vertex merging alone, technique vm) and Mitsuba's
+`path` and `ptracer`, on the paper's scenes,
 the cases where BDPT should win, caustics seen through glass (where only vertex merging does well) and
 a plain Cornell box, and Mitsuba 0.6's `bdpt` and `path` (the seed paper's own comparison) where a
 built Mitsuba 0.6 is given. Writes `docs/results.md` with its plots
