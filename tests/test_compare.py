@@ -23,7 +23,7 @@ BENCH = os.path.join(REPO, 'benchmarks')
 VEACH_BIDIR = '/work/shared/scenes/bitterli/veach-bidir/scene.xml'     # a user's scene, where present
 sys.path.insert(0, BENCH)
 BASE_LABELS = ('bdpt power', 'bdpt balance', 'bdpt uniform', 'bdpt pt', 'bdpt lt', 'Mitsuba path', 'Mitsuba ptracer')
-VCM_LABELS = ('bdpt vcm', 'bdpt vm')         # where this bdpt_jit has vertex merging (issue 15)
+VCM_LABELS = ('bdpt vcm', 'bdpt vcm everywhere', 'bdpt vm')   # where this bdpt_jit has vertex merging (issue 15)
 TEXT_COLUMNS = {'contestant', 'point', 'scene', 'lowest relMSE', 'runner-up', 'order of relMSE (equal time)', 'S-D-S paths',
                 'target', 'met'}
 NUMBER = re.compile(r'^[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?$')
