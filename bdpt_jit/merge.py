@@ -144,15 +144,15 @@ class Merger:
         self.ctx = ctx
         self.grid = grid
 
-    def ranges(self, p, group):
+    def ranges(self, p, group, active=True):
         """The entries of the 2 x 2 x 2 cells around ``p`` in iteration ``group``: each cell's
         first entry, and the running totals (9 values, the last the number of entries); a bucket
-        that two of the cells hash to counts once."""
+        that two of the cells hash to counts once. Lanes not ``active`` read nothing (none)."""
         g = self.grid
         buckets, dup = g.neighbourhood(p, group)
         starts, totals = [], [mi.UInt32(0)]
         for b, d in zip(buckets, dup):
-            first, end = dr.gather(mi.UInt32, g.start, b), dr.gather(mi.UInt32, g.start, b + 1)
+            first, end = dr.gather(mi.UInt32, g.start, b, active), dr.gather(mi.UInt32, g.start, b + 1, active)
             starts.append(first)
             totals.append(totals[-1] + dr.select(d, 0, end - first))
         return starts, totals
@@ -195,7 +195,7 @@ class Merger:
         r = sched.radius(group)
         radius2 = r * r
         norm = 1.0 / (dr.pi * radius2 * sched.paths_f)
-        starts, totals = self.ranges(si.p, group)
+        starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))
         # one iteration per entry of the 8 cells (empty cells cost nothing: ~2 entries a query

@@ -197,7 +197,7 @@ class MIS:
         (the other arguments as on_scatter's)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
         d_vm_smooth = self.h(cos_out * inv_fwd) * (d_vm * self.h(pdf_rev_w) + d_vcm * self.vc_factor
-                                                   + _gate(1.0 + 0.0 * d_vm, merge_here))   # [VCM (36)]
+                                                   + _gate(1.0, merge_here))   # [VCM (36)]
         if is_delta is None:
             return d_vm_smooth
         return dr.select(is_delta, d_vm * self.h(cos_out), d_vm_smooth)              # [VCM (36)] delta

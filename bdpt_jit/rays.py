@@ -100,10 +100,10 @@ class RayOffsets:
         m = dr.max(dr.abs(p))
         if shape is None:
             return ERR_REL * m
-        idx, known = self._known(shape)
-        m = dr.maximum(m, dr.gather(mi.Float, self.table, idx, known))
+        m = dr.maximum(m, self.shape_magnitude(shape))
         if not self.any_mesh or not hit:
             return ERR_REL * m
+        idx, known = self._known(shape)
         rel = dr.select(known, dr.gather(mi.Float, self.rel, idx, known), ERR_REL)
         return rel * m
 
