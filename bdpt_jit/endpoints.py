@@ -237,68 +237,79 @@ class EmitterTable(DirectSampling):
         e.ps = ps
         si_e = mi.SurfaceInteraction3f(ps, wl)
         e.si_e = si_e
-        value = mi.Spectrum(0.0)
-        p_pos = mi.Float(1.0)
-        p_dir = mi.Float(0.0)
-        d = mi.Vector3f(0, 0, 1)
-        origin = mi.Point3f(ps.p)
-        cos_e = mi.Float(1.0)
-        n_e = mi.Vector3f(ps.n)
-        if k.area is not False:
-            local = mi.warp.square_to_cosine_hemisphere(u_dir)
-            si_e.wi = local                                  # area emitters read si.wi (and si.uv)
-            le = emitter.eval(si_e, active & k.area)
-            d_area = si_e.to_world(local)
-            value = sel(k.area, le * local.z, value)
-            p_pos = sel(k.area, ps.pdf, p_pos)               # by area, or by the radiance texture
-            p_dir = sel(k.area, self.pdf_dir_w(local.z), p_dir)
-            d = sel(k.area, d_area, d)
-            cos_e = sel(k.area, dr.abs(dr.dot(ps.n, d_area)), cos_e)
-        if k.dir_area is not False:
-            # along the normal only (Mitsuba's sample_ray); the radiance at the point is what its
-            # sample_wavelengths returns (its eval is 0: no direction given can be the normal)
-            _, le_n = emitter.sample_wavelengths(si_e, mi.Float(0.5), active & k.dir_area)
-            value = sel(k.dir_area, le_n, value)
-            p_pos = sel(k.dir_area, ps.pdf, p_pos)
-            p_dir = sel(k.dir_area, mi.Float(1.0), p_dir)
-            d = sel(k.dir_area, mi.Vector3f(ps.n), d)
-        if k.delta_pos is not False:
-            cos_cut, axis = self.cone(emitter)
-            d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u_dir, cos_cut))
-            it = dr.zeros(mi.Interaction3f)
-            it.p = ps.p + d_cone                             # at distance 1: weight = intensity
-            it.time, it.wavelengths = time, wl
-            _, intensity = emitter.sample_direction(it, u_dir, active & k.delta_pos)
-            value = sel(k.delta_pos, intensity, value)
-            p_dir = sel(k.delta_pos, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), p_dir)
-            d = sel(k.delta_pos, d_cone, d)
-            n_e = sel(k.delta_pos, d_cone, n_e)
-        if k.infinite is not False:
-            it = dr.zeros(mi.Interaction3f)
-            it.p = self.center
-            it.time, it.wavelengths = time, wl
-            ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & k.infinite)
-            to_light = ds_inf.d                              # from the scene towards the emitter
-            disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
-            o_inf = self.center + to_light * self.radius + mi.Frame3f(to_light).to_world(mi.Vector3f(disk.x, disk.y, 0))
-            value = sel(k.infinite, w_inf * ds_inf.pdf, value)          # radiance (irradiance if delta)
-            p_pos = sel(k.infinite, mi.Float(self.pdf_disk), p_pos)
-            p_dir = sel(k.infinite, ds_inf.pdf, p_dir)                   # 1 for directional
-            d = sel(k.infinite, -to_light, d)
-            origin = sel(k.infinite, o_inf, origin)
-            n_e = sel(k.infinite, -to_light, n_e)
-        e.d, e.origin, e.n_e, e.cos_e = d, origin, n_e, cos_e
-        e.pdf_emit_w = p_sel * p_pos * p_dir
-        e.pdf_light_a = p_sel * p_pos                        # y0's density (s=1, t=1)
-        e.beta = mi.Spectrum(value * safe_div(1.0, e.pdf_emit_w))
-        ok = active & (e.pdf_emit_w > 0) & (dr.max(value) > 0)
-        e.active = ok
+        st = EmissionStart(ps, si_e, wl)               # what each emitter kind's block below overwrites
+        for kind, start in ((k.area, self._start_area), (k.dir_area, self._start_dir_area),
+                            (k.delta_pos, self._start_delta_pos), (k.infinite, self._start_infinite)):
+            if kind is not False:
+                start(emitter, kind, st, time, u_pos, u_dir, active)
+        e.d, e.origin, e.n_e, e.cos_e = st.d, st.origin, st.n_e, st.cos_e
+        e.pdf_emit_w = p_sel * st.p_pos * st.p_dir
+        e.pdf_light_a = p_sel * st.p_pos                     # y0's density (s=1, t=1)
+        e.beta = mi.Spectrum(st.value * safe_div(1.0, e.pdf_emit_w))
+        e.active = active & (e.pdf_emit_w > 0) & (dr.max(st.value) > 0)
         # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
         e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape(), hit=False), mi.Float(0.0)) \
             if k.surface is not False else mi.Float(0.0)
         n_off = sel(k.surface, mi.Normal3f(ps.n), mi.Normal3f(0.0)) if k.surface is not False else mi.Normal3f(0.0)
-        e.ray = mi.Ray3f(offset_origin(origin, n_off, e.err, d), d, dr.largest(mi.Float), time, wl)
+        e.ray = mi.Ray3f(offset_origin(st.origin, n_off, e.err, st.d), st.d, dr.largest(mi.Float), time, wl)
         return e
+
+    # Each of the four blocks below overwrites, in the lanes of its emitter kind (`kind`), the fields
+    # of an EmissionStart: the emitted value, the position and direction densities, the direction,
+    # the ray's origin, the cosine at the emitter and the emitter's normal.
+
+    def _start_area(self, emitter, kind, st, time, u_pos, u_dir, active):
+        """Area emitters: cosine-weighted direction around the sampled point's normal."""
+        ps, si_e = st.ps, st.si_e
+        local = mi.warp.square_to_cosine_hemisphere(u_dir)
+        si_e.wi = local                                      # area emitters read si.wi (and si.uv)
+        le = emitter.eval(si_e, active & kind)
+        d_area = si_e.to_world(local)
+        st.value = sel(kind, le * local.z, st.value)
+        st.p_pos = sel(kind, ps.pdf, st.p_pos)               # by area, or by the radiance texture
+        st.p_dir = sel(kind, self.pdf_dir_w(local.z), st.p_dir)
+        st.d = sel(kind, d_area, st.d)
+        st.cos_e = sel(kind, dr.abs(dr.dot(ps.n, d_area)), st.cos_e)
+
+    def _start_dir_area(self, emitter, kind, st, time, u_pos, u_dir, active):
+        """directionalarea: along the normal only (Mitsuba's sample_ray); the radiance at the point is
+        what its sample_wavelengths returns (its eval is 0: no direction given can be the normal)."""
+        ps = st.ps
+        _, le_n = emitter.sample_wavelengths(st.si_e, mi.Float(0.5), active & kind)
+        st.value = sel(kind, le_n, st.value)
+        st.p_pos = sel(kind, ps.pdf, st.p_pos)
+        st.p_dir = sel(kind, mi.Float(1.0), st.p_dir)
+        st.d = sel(kind, mi.Vector3f(ps.n), st.d)
+
+    def _start_delta_pos(self, emitter, kind, st, time, u_pos, u_dir, active):
+        """Point and spot lights: a direction uniform in the emitter's cone."""
+        cos_cut, axis = self.cone(emitter)
+        d_cone = mi.Frame3f(axis).to_world(mi.warp.square_to_uniform_cone(u_dir, cos_cut))
+        it = dr.zeros(mi.Interaction3f)
+        it.p = st.ps.p + d_cone                              # at distance 1: weight = intensity
+        it.time, it.wavelengths = time, st.wl
+        _, intensity = emitter.sample_direction(it, u_dir, active & kind)
+        st.value = sel(kind, intensity, st.value)
+        st.p_dir = sel(kind, mi.warp.square_to_uniform_cone_pdf(mi.Vector3f(0, 0, 1), cos_cut), st.p_dir)
+        st.d = sel(kind, d_cone, st.d)
+        st.n_e = sel(kind, d_cone, st.n_e)
+
+    def _start_infinite(self, emitter, kind, st, time, u_pos, u_dir, active):
+        """Infinite emitters: a direction from the emitter, an origin on the disk of the scene's
+        bounding sphere facing it."""
+        it = dr.zeros(mi.Interaction3f)
+        it.p = self.center
+        it.time, it.wavelengths = time, st.wl
+        ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & kind)
+        to_light = ds_inf.d                                  # from the scene towards the emitter
+        disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
+        o_inf = self.center + to_light * self.radius + mi.Frame3f(to_light).to_world(mi.Vector3f(disk.x, disk.y, 0))
+        st.value = sel(kind, w_inf * ds_inf.pdf, st.value)              # radiance (irradiance if delta)
+        st.p_pos = sel(kind, mi.Float(self.pdf_disk), st.p_pos)
+        st.p_dir = sel(kind, ds_inf.pdf, st.p_dir)                       # 1 for directional
+        st.d = sel(kind, -to_light, st.d)
+        st.origin = sel(kind, o_inf, st.origin)
+        st.n_e = sel(kind, -to_light, st.n_e)
 
     def pdf_direct_first_hit(self, e, si1, active):
         """Density of emitter sampling choosing y0 when seen from the first hit y1: per unit
@@ -441,6 +452,20 @@ def projector_cone(emitter):
         raise UnsupportedSceneError("bdpt: the projector emitter's frustum could not be bounded "
                                     "(its emitted directions leave the cone computed from its field of view)")
     return cos_cut, [float(axis[0]), float(axis[1]), float(axis[2])]
+
+
+class EmissionStart:
+    """What sample_emission's per-kind blocks fill in: their defaults are those of lanes of no kind."""
+
+    def __init__(self, ps, si_e, wl):
+        self.ps, self.si_e, self.wl = ps, si_e, wl
+        self.value = mi.Spectrum(0.0)
+        self.p_pos = mi.Float(1.0)
+        self.p_dir = mi.Float(0.0)
+        self.d = mi.Vector3f(0, 0, 1)
+        self.origin = mi.Point3f(ps.p)
+        self.cos_e = mi.Float(1.0)
+        self.n_e = mi.Vector3f(ps.n)
 
 
 class Emission:
