@@ -62,7 +62,8 @@ import compare_report as report  # noqa: E402
 import mitsuba06  # noqa: E402
 
 
-def parse_args(argv=None):
+def build_parser():
+    """The command line: modes, scenes, contestants, outputs and overrides of the mode's settings."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     mode = ap.add_mutually_exclusive_group(required=True)
@@ -99,7 +100,11 @@ def parse_args(argv=None):
     g.add_argument('--count-spp', type=int)
     g.add_argument('--ref06-spp', type=int, help='spp of one batch of the Mitsuba 0.6 reference')
     g.add_argument('--ref06-batches', type=int)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def settings_of(ap, args):
+    """The mode's settings with the command line's overrides (and the output paths in args)."""
     name = 'results-realistic' if args.mode == 'realistic' else 'results'     # the realistic report apart
     args.out = args.out or lib.REPO / 'docs' / f'{name}.md'
     if args.section is not None and not re.fullmatch(r'[A-Za-z0-9_.-]+', args.section):
@@ -119,6 +124,11 @@ def parse_args(argv=None):
         ap.error('--budgets must be positive and increasing')
     if s.repeats < 1 or s.ref_batches < 2 or s.pilot_batches < 2 or s.ref06_batches < 2 or s.res < 4:
         ap.error('need --repeats >= 1, --ref-batches >= 2, --pilot-batches >= 2, --ref06-batches >= 2, --res >= 4')
+    return s
+
+
+def check_contestants(ap, args, s):
+    """--contestants, checked, into s.contestants."""
     if args.contestants is not None:
         keys = [k.strip() for k in args.contestants.split(',') if k.strip()]
         known = [c.key for c in lib.ALL_CONTESTANTS]
@@ -129,6 +139,10 @@ def parse_args(argv=None):
         if missing:
             ap.error(f"--contestants must include {', '.join(lib.REQUIRED)} (the tables are relative to them)")
         s.contestants = tuple(keys)
+
+
+def scenes_of(ap, args):
+    """The repository's scenes that --scenes names and the users' --scene-file ones."""
     known = {sc.key: sc for sc in lib.SCENES}
     keys = [k.strip() for k in args.scenes.split(',') if k.strip()]
     unknown = [k for k in keys if k not in known]
@@ -143,7 +157,15 @@ def parse_args(argv=None):
         if spec.key in [sc.key for sc in scenes]:
             ap.error(f'--scene-file: the key {spec.key} is taken')
         scenes.append(spec)
-    return args, s, scenes
+    return scenes
+
+
+def parse_args(argv=None):
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    s = settings_of(ap, args)
+    check_contestants(ap, args, s)
+    return args, s, scenes_of(ap, args)
 
 
 def find_mitsuba06(args, settings, scenes):
