@@ -32,7 +32,24 @@ def load(name, **kw):
         d = sc.cornell(RES)
         d['large-box'] = dict(d['large-box'], bsdf={'type': 'roughconductor', 'material': 'Al', 'alpha': 0.15})
         return mi.load_dict(d)
+    if name in ('grazing-conductor', 'grazing-glass'):
+        return mi.load_dict(grazing_scene(name == 'grazing-glass'))
     return mi.load_file(scene_path(name), res=RES, **kw)
+
+
+def grazing_scene(glass):
+    """A rough plane (aluminium, or a glass interface) under a constant sky, seen at grazing
+    angles (57-87 degrees from its normal): microfacet shadowing and masking darken it as its
+    roughness grows, so every pixel has a derivative with respect to alpha of one sign."""
+    T = mi.ScalarTransform4f
+    bsdf = ({'type': 'roughdielectric', 'alpha': 0.4, 'int_ior': 1.5} if glass else
+            {'type': 'roughconductor', 'material': 'Al', 'alpha': 0.4})
+    return {'type': 'scene',
+            'sensor': {'type': 'perspective', 'fov': 30,
+                       'to_world': T().look_at([0, 1, 3], [0, 0, 0], [0, 1, 0]),
+                       'film': {'type': 'hdrfilm', 'width': RES, 'height': RES, 'rfilter': {'type': 'box'}}},
+            'plane': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(40), 'bsdf': bsdf},
+            'sky': {'type': 'constant', 'radiance': 1.0}}
 
 
 def attach(params, key):
@@ -169,12 +186,14 @@ def assert_agree(a, b, what, block=8, z=3.5):
 
 
 FD_CASES = {
-    # name: (scene, key, direction builder, h, max_depth)
+    # name: (scene, key, direction builder, h, max_depth[, spp: 16])
     'cornell_reflectance': ('cornell-box.xml', 'white.reflectance.value', lambda v: mi.Color3f(1, 0, 0), 0.05, 5),
     'caustic_floor_reflectance': ('caustic.xml', 'floor_white.reflectance.value', lambda v: mi.Color3f(0, 1, 0), 0.05, 5),
     # Mitsuba's roughplastic precomputes its Fresnel tables from alpha without derivatives (its
     # own prb is 6x off finite differences there): the roughness case is a rough conductor
     'cornell_rough_conductor': ('rough', 'large-box.bsdf.alpha.value', lambda v: mi.Float(1.0), 0.03, 5),
+    'grazing_rough_conductor': ('grazing-conductor', 'plane.bsdf.alpha.value', lambda v: mi.Float(1.0), 0.05, 5, 1024),
+    'grazing_rough_glass': ('grazing-glass', 'plane.bsdf.alpha.value', lambda v: mi.Float(1.0), 0.05, 5, 1024),
     'fig6_mirror': ('paper-fig6.xml', 'mirror_sphere.bsdf.specular_reflectance.value', lambda v: mi.Float(1.0), 0.1, 5),
     'fig6_textured_reflectance': ('paper-fig6.xml', 'textured_sphere.bsdf.reflectance.color0.value',
                                   lambda v: mi.Color3f(1, 1, 1), 0.05, 5),
@@ -183,13 +202,14 @@ FD_CASES = {
 
 @pytest.mark.parametrize('case', list(FD_CASES))
 def test_forward_derivative_agrees_with_finite_differences(case):
-    name, key, direction, h, max_depth = FD_CASES[case]
+    name, key, direction, h, max_depth, *spp = FD_CASES[case]
+    spp = spp[0] if spp else 16
     scene = load(name)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth})
     params = mi.traverse(scene)
     delta = direction(params[key])
-    ad = forward_batches(scene, key, delta, integ, 16, 12)
-    fd = fd_batches(scene, key, delta, h, integ, 16, 12)
+    ad = forward_batches(scene, key, delta, integ, spp, 12)
+    fd = fd_batches(scene, key, delta, h, integ, spp, 12)
     assert np.all(np.isfinite(ad))
     assert np.abs(ad).max() > 0
     assert_agree(ad, fd, case)
