@@ -140,6 +140,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             cap = self.light_capacity(ctx)
             store = LightStore(n=n, capacity=cap, record=ctx.record) if cap > 0 else None
             LightTracer(ctx).trace(sampler, n, acc, store, spectral)
+            # Evaluate what the light subpaths leave to the camera pass (the sampler's state, the
+            # stored vertices' counts): left symbolic, the camera kernel would trace every light
+            # subpath again to recompute them (SmallVCM box: 2838 operations and 683 ms, against
+            # 1742 and 549 ms with them read from memory)
+            sampler.schedule_state()
+            if store is not None:
+                dr.schedule(store.count)
+            dr.eval()
         if ctx.strategies.trace_merge:
             merger = Merger(ctx, PhotonGrid(ctx.scene, store, schedule))
             self.last_merge_radius = schedule.r_last
