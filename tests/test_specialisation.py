@@ -4,6 +4,7 @@ not traced. Measured from Dr.Jit's kernel history (operations in the launched ke
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import re
 import pytest
 
 import bdpt_jit.context as context_module
@@ -11,8 +12,9 @@ from helpers import cornell_scene
 from stability_cases import cornell
 
 
-def traced_ops(scene, **params):
-    """(total operations of the JIT kernels launched by one render, their count, render info)."""
+def traced_ops(scene, loops=None, **params):
+    """(total operations of the JIT kernels launched by one render, their count, render info).
+    ``loops``: a list that receives, per kernel, the labels of the symbolic loops it holds."""
     integ = mi.load_dict({'type': 'bdpt', **params})
     mi.render(scene, integrator=integ, spp=1)     # warm-up: one-off setup kernels (emitter tables)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -23,6 +25,8 @@ def traced_ops(scene, **params):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     jit = [k for k in hist if k['type'] == dr.KernelType.JIT]
+    if loops is not None:
+        loops += [re.findall(r'; Symbolic loop: (\S+)', k['ir'].getvalue()) for k in jit]
     return sum(k.get('operation_count', 0) for k in jit), len(jit), integ.last_render_info
 
 
@@ -45,12 +49,24 @@ def test_lt_traces_no_camera_subpath():
 
 def test_short_max_depth_leaves_out_connections():
     scene = cornell_scene(8)
-    ops2, _, info2 = traced_ops(scene, max_depth=2)
-    ops5, _, info5 = traced_ops(scene, max_depth=5)
+    loops2, loops5 = [], []
+    ops2, _, info2 = traced_ops(scene, loops2, max_depth=2)
+    ops5, _, info5 = traced_ops(scene, loops5, max_depth=5)
     assert not any('s>=2' in s for s in info2['strategies'])
     assert any('s>=2' in s for s in info5['strategies'])
     assert info2['light_vertex_levels'] == 0 and info5['light_vertex_levels'] == 3
-    assert ops2 < 0.8 * ops5, (ops2, ops5)
+    assert not any('bdpt_connect' in k for k in loops2) and any('bdpt_connect' in k for k in loops5)
+    assert ops2 < 0.85 * ops5, (ops2, ops5)
+
+
+def test_light_subpaths_are_traced_once():
+    """The camera kernel reads what the light subpaths leave it (the sampler's state, the stored
+    vertices' counts) from memory: no kernel but the light pass's replays the light loop."""
+    for technique in ('bdpt', 'vcm'):
+        loops = []
+        traced_ops(cornell_scene(8), loops, technique=technique, max_depth=5)
+        holding = [k for k in loops if 'bdpt_light_subpath' in k]
+        assert len(holding) == 1 and 'bdpt_camera_subpath' not in holding[0], (technique, loops)
 
 
 def test_delta_handling_traced_only_when_the_scene_has_delta_bsdfs(monkeypatch):
