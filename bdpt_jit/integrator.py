@@ -144,10 +144,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # stored vertices' counts): left symbolic, the camera kernel would trace every light
             # subpath again to recompute them (SmallVCM box: 2838 operations and 683 ms, against
             # 1742 and 549 ms with them read from memory)
-            sampler.schedule_state()
-            if store is not None:
-                dr.schedule(store.count)
-            dr.eval()
+            if ctx.strategies.camera_pass:
+                sampler.schedule_state()
+                if store is not None:
+                    dr.schedule(store.count)
+                dr.eval()
         if ctx.strategies.trace_merge:
             merger = Merger(ctx, PhotonGrid(ctx.scene, store, schedule))
             self.last_merge_radius = schedule.r_last

@@ -39,8 +39,9 @@ def load(name, **kw):
 
 def grazing_scene(glass):
     """A rough plane (aluminium, or a glass interface) under a constant sky, seen at grazing
-    angles (57-87 degrees from its normal): microfacet shadowing and masking darken it as its
-    roughness grows, so every pixel has a derivative with respect to alpha of one sign."""
+    angles (57-87 degrees from its normal), where shadowing and masking make the image depend
+    strongly on alpha: its derivative is large in every 8x8 block (the glass darkens everywhere;
+    the aluminium brightens at the most grazing angles and darkens nearer the camera)."""
     T = mi.ScalarTransform4f
     bsdf = ({'type': 'roughdielectric', 'alpha': 0.4, 'int_ior': 1.5} if glass else
             {'type': 'roughconductor', 'material': 'Al', 'alpha': 0.4})

@@ -1,10 +1,11 @@
 """The kernels are specialised to the scene and the settings: what a setting does not need is
 not traced. Measured from Dr.Jit's kernel history (operations in the launched kernels)."""
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-import re
 import pytest
 
 import bdpt_jit.context as context_module
