@@ -148,6 +148,10 @@ def build_parser():
                    help=f'Mitsuba variant (default: {GPU_VARIANT} where a CUDA GPU is present, '
                         f'else {DEFAULT_VARIANT})')
     r.add_argument('--seed', type=_seed, default=0, help='random seed (default: 0)')
+    r.add_argument('--denoise', action='store_true',
+                   help="also denoise the image (Open Image Denoise on llvm_* variants, OptiX on cuda_*; "
+                        "albedo and normal from a feature pass): denoised, albedo and normal EXR layers, and "
+                        "the PNG from the denoised image. Needs pip install -e '.[denoise]'")
     r.add_argument('-q', '--quiet', action='store_true',
                    help='no progress bar and no summary (errors and interruptions are still reported)')
     r.add_argument('--debug', action='store_true', help='show tracebacks and Dr.Jit\'s own messages')

@@ -71,12 +71,14 @@ def exr_channels(rgb, layers=None, aov_names=()):
     return ch
 
 
-def write_exr(path, rgb, header_extra, layers=None, aov_names=()):
-    """ZIP-compressed scanline EXR; ``header_extra`` values are written as strings."""
+def write_exr(path, rgb, header_extra, layers=None, aov_names=(), extra_channels=None):
+    """ZIP-compressed scanline EXR; ``header_extra`` values are written as strings;
+    ``extra_channels``: more named channels (--denoise: ``denoised.R``, ``albedo.R``, ...)."""
     import OpenEXR
     header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
     header.update({k: str(v) for k, v in header_extra.items()})
     channels = exr_channels(rgb, layers, aov_names)
+    channels.update(extra_channels or {})
     atomic_write(path, lambda tmp: OpenEXR.File(header, channels).write(tmp))
 
 

@@ -8,7 +8,7 @@ import tempfile
 import time
 
 from .args import DEFAULT_VARIANT, GPU_VARIANT, check_params, given_params, option_of, parse_defines
-from .errors import EXIT_INTERRUPTED, EXIT_OK, PROG, CLIError, error_text, scene_error
+from .errors import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, PROG, CLIError, error_text, scene_error
 from .outputs import output_paths, write_exr, write_png
 from .rendering import render
 from .summary import header, print_summary, statistics
@@ -31,6 +31,10 @@ def cmd_render(args, guard):
         raise CLIError(f"--strategies needs --integrator bdpt (not {args.integrator})")
 
     variant = init_variant(args)
+    den = None
+    if args.denoise:                                # the denoiser checked now, its error told after writing
+        from ..denoise.command import DenoiseStep
+        den = DenoiseStep(variant)
     import mitsuba as mi
     if args.quiet:
         mi.set_log_level(mi.LogLevel.Error)         # Mitsuba's warnings too
@@ -47,19 +51,24 @@ def cmd_render(args, guard):
 
     res = render(args, scene, integ, is_bdpt, guard)
     img, layers = res.mean()
-    stats = statistics(args, res, settings, variant, args.scene, defines, time.perf_counter() - t_wall)
     aov_names = list(getattr(integ, 'aov_channels', ()))
-    write_exr(out, img, header(stats), layers, aov_names)
-    write_png(png, img[:, :, :img.shape[2] - len(aov_names)])
+    colour = img[:, :, :img.shape[2] - len(aov_names)]
+    extra, png_img = den.run(scene, colour, res.spp, args.seed) if den is not None else ({}, colour)
+    stats = statistics(args, res, settings, variant, args.scene, defines, time.perf_counter() - t_wall)
+    stats.update(den.stats if den is not None else {})
+    write_exr(out, img, header(stats), layers, aov_names, extra)
+    write_png(png, png_img)
     if not args.quiet:
         print_summary(stats, res, out, png)
         sys.stdout.flush()
+    if den is not None and den.error is not None:
+        print(f"{PROG}: error: --denoise: {den.error}; wrote the raw image to {out} and {png}", file=sys.stderr)
     if res.interrupted:
         print(f"{PROG}: interrupted: wrote the {res.spp:g} spp rendered so far"
               + (f" (of {res.spp_requested})" if res.spp_requested else '') + f" to {out} and {png}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    return EXIT_OK
+    return EXIT_ERROR if den is not None and den.error is not None else EXIT_OK
 
 
 # ----------------------------------------------------------------------------- variant

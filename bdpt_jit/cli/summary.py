@@ -114,6 +114,9 @@ def print_summary(stats, res, out, png):
             p(f"  {'needed' if on else 'left out':15} {name}" + (f" ({why})" if on else ''))
     if res.layers is not None:
         p(f"  layers          {len(res.layers)} strategy layers (weighted and unweighted) in the EXR")
+    if any(k.startswith('denoise.') for k in stats):
+        from ..denoise.command import summary_text
+        p(f"  denoised        {summary_text(stats)}")
     p(f"  wrote           {out}, {png}")
 
 
