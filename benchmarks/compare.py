@@ -40,6 +40,10 @@ Issue 13's section of docs/results.md:
 Without it, the report says it was absent. Likewise `vcm` and `vm` where this bdpt_jit refuses the
 technique (before vertex merging landed): left out, and the report says why.
 
+Errors are relative MSE, MSE and FLIP (NVIDIA's `flip_evaluator`, LDR mode, on sRGB images exposed so that the
+reference's 98th percentile is white). `--denoise` also denoises every contestant's equal-time image (bdpt_jit.denoise)
+and reports its errors beside the noisy image's.
+
 References are cached under `benchmarks/cache/`. Every setting of a mode can be overridden (the test
 runs a tiny configuration into a temporary folder):
 
@@ -88,6 +92,9 @@ def build_parser():
                     'NAME/ of the figure folder: a run on a few scenes or contestants beside the full report')
     ap.add_argument('--cache-dir', type=Path, default=lib.REPO / 'benchmarks' / 'cache',
                     help='reference cache (default: %(default)s)')
+    ap.add_argument('--denoise', action='store_true',
+                    help='also denoise each contestant\'s equal-time image (Open Image Denoise, albedo and normal from '
+                         'a feature pass) and report its relMSE and FLIP (needs pip install -e \'.[denoise]\')')
     g = ap.add_argument_group('overrides of the mode\'s settings')
     g.add_argument('--res', type=int)
     g.add_argument('--budgets', type=float, nargs='+', help='time budgets in seconds, increasing')
@@ -120,6 +127,7 @@ def settings_of(ap, args):
         s.budgets = tuple(args.budgets)
     if args.probe_spp:
         s.probe_spp = tuple(args.probe_spp)
+    s.denoise = bool(args.denoise)
     if list(s.budgets) != sorted(s.budgets) or min(s.budgets) <= 0:
         ap.error('--budgets must be positive and increasing')
     if s.repeats < 1 or s.ref_batches < 2 or s.pilot_batches < 2 or s.ref06_batches < 2 or s.res < 4:
@@ -193,8 +201,22 @@ def find_mitsuba06(args, settings, scenes):
     return m06, status
 
 
+def check_packages(settings):
+    """FLIP's package, and with --denoise the denoiser's, before anything is rendered."""
+    why = lib.check_flip()
+    if why:
+        sys.exit(f'compare.py: {why}')
+    if settings.denoise:
+        from bdpt_jit.denoise import DenoiseError, backends
+        try:
+            backends.choose(lib.mi.variant())
+        except DenoiseError as e:
+            sys.exit(f'compare.py: --denoise: {e}')
+
+
 def main(argv=None):
     args, settings, scenes = parse_args(argv)
+    check_packages(settings)
     command = 'python benchmarks/compare.py ' + ' '.join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     info = lib.machine_info()
     info['date'] = datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')

@@ -37,9 +37,12 @@ SCENE_DIR = REPO / 'scenes'
 REF_VERSION = 2                 # bump when the reference construction changes (invalidates the cache)
 QUOTABLE = 0.1                  # a figure is quoted only where the reference's expected error is below this fraction of it
 EPS_REL = 0.1                   # relMSE denominator: ref^2 + (EPS_REL * mean of the reference over the region)^2
+FLIP_WHITE_QUANTILE = 0.98      # FLIP's LDR exposure: this quantile of the reference's luminance maps to white
 
 # seeds: contestants count up from 1; references, their pilots and the ray counts use disjoint ranges
 SEED_REF, SEED_PILOT, SEED_COUNT, SEED_REF06 = 1_000_000, 2_000_000, 3_000_000, 4_000_000
+SEED_FEATURES = 5_000_000
+FEATURE_SPP = 64                # the denoiser's feature pass (--denoise): one per scene, shared by the contestants
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,6 +196,7 @@ class Settings:
     contestants: tuple = tuple(c.key for c in ALL_CONTESTANTS)  # Mitsuba 0.6's only where it is found
     ref06_spp: int = 256    # Mitsuba 0.6's reference: ref06_batches renders of its bdpt at this spp
     ref06_batches: int = 8
+    denoise: bool = False   # also denoise each contestant's equal-time image (--denoise)
 
 
 MODES = {
@@ -470,6 +474,39 @@ def errors(img, ref):
     return float(d2.mean()), float((d2 / (ref.mean[ref.region] ** 2 + ref.eps)).mean())
 
 
+def flip_exposure(ref):
+    """The exposure FLIP's LDR images are made with: the scale that maps the 98th percentile of the
+    reference's luminance (mean of its channels) over the measured region to white, as the crops have it."""
+    lum = ref.mean.mean(axis=2)[ref.region]
+    white = float(np.quantile(lum, FLIP_WHITE_QUANTILE)) if lum.size else 0.0
+    return 1.0 / (white if white > 0 else max(float(lum.max()) if lum.size else 0.0, 1e-8))
+
+
+def ldr(img, scale):
+    """An LDR image for FLIP: linear radiance times `scale`, clamped to [0, 1], sRGB-encoded (float32)."""
+    x = np.clip(np.nan_to_num(img * scale, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def flip_error(img, ref):
+    """Mean FLIP (NVIDIA's flip_evaluator, LDR mode, default 67 pixels per degree) of `img` against the
+    reference, both tone-mapped by `ldr` with the reference's `flip_exposure`, averaged over the measured
+    region (over the whole image: flip_evaluator's own mean)."""
+    import flip_evaluator
+    scale = flip_exposure(ref)
+    emap, _, _ = flip_evaluator.evaluate(ldr(ref.mean, scale), ldr(img, scale), 'LDR', applyMagma=False)
+    return float(np.asarray(emap, dtype=np.float64).reshape(ref.region.shape)[ref.region].mean())
+
+
+def check_flip():
+    """None, or why FLIP cannot be measured (flip_evaluator missing)."""
+    try:
+        import flip_evaluator  # noqa: F401
+    except ImportError:
+        return "FLIP needs the package flip-evaluator: pip install -e '.[bench]'"
+    return None
+
+
 def kernel_summary(history):
     ks = [k for k in history if k.get('type') == dr.KernelType.JIT]
     return {'kernels': len(ks),
@@ -527,20 +564,26 @@ class Runner:
             hist = dr.kernel_history()
             dr.set_flag(dr.JitFlag.KernelHistory, False)
             self.compile[key].append(dict(kernel_summary(hist), spp=spp, warmup_s=wall))
-            out[key] = {'spp': spp, 'times': [], 'errs': [errors(img, self.refs[key])], 'warmup_s': wall}
+            out[key] = {'spp': spp, 'times': [], 'errs': [self.measure(img, key)], 'warmup_s': wall}
         for _ in range(self.s.repeats):
             for key, spp in spp_of.items():
                 t, img = self._render(key, spp)
                 out[key]['times'].append(t)
-                out[key]['errs'].append(errors(img, self.refs[key]))
+                out[key]['errs'].append(self.measure(img, key))
                 self.images[(key, spp)] = img
         for key, p in out.items():
             e = np.array(p.pop('errs'))
             n = len(e)
             p.update(time=statistics.median(p['times']), mse=float(e[:, 0].mean()), rel=float(e[:, 1].mean()),
                      mse_se=float(e[:, 0].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0,
-                     rel_se=float(e[:, 1].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0, renders=n)
+                     rel_se=float(e[:, 1].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0, renders=n,
+                     flip=float(e[:, 2].mean()), flip_se=float(e[:, 2].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0)
         return out
+
+    def measure(self, img, key):
+        """(MSE, relMSE, FLIP) of a contestant's render against its reference."""
+        ref = self.refs[key]
+        return (*errors(img, ref), flip_error(img, ref))
 
     @staticmethod
     def fit(points):
@@ -629,6 +672,28 @@ class Runner:
         return out
 
 
+def denoised_errors(scene, runner, et):
+    """--denoise: each contestant's equal-time image (its last timed render) denoised by bdpt_jit.denoise (Open
+    Image Denoise on the CPU) with the albedo and normal of one feature pass of the scene, shared by all, and
+    measured like the noisy image, which is measured again alone beside it. The denoiser's time is not in
+    the budget (it is the same for every contestant and is reported)."""
+    from bdpt_jit.denoise import denoise_with_settings, feature_images
+    t0 = time.perf_counter()
+    albedo, normal = feature_images(scene, spp=FEATURE_SPP, seed=SEED_FEATURES)
+    feature_s = time.perf_counter() - t0
+    points, settings = {}, {}
+    for key, p in et.items():
+        img = runner.images[(key, p['spp'])]
+        t = time.perf_counter()
+        den, settings = denoise_with_settings(img.astype(np.float32), albedo, normal)
+        denoise_s = time.perf_counter() - t
+        noisy, clean = runner.measure(img, key), runner.measure(den.astype(np.float64), key)
+        points[key] = {'spp': p['spp'], 'time': p['time'], 'denoise_s': denoise_s,
+                       'noisy': dict(zip(('mse', 'rel', 'flip'), noisy)),
+                       'denoised': dict(zip(('mse', 'rel', 'flip'), clean))}
+    return {'feature_spp': FEATURE_SPP, 'feature_s': feature_s, 'settings': settings, 'points': points}
+
+
 def run_scene(spec, s, contestants, cache_dir, m06=None):
     """Measures one scene. `m06`: a mitsuba06.Mitsuba06, needed where `contestants` hold Mitsuba 0.6's."""
     t0 = time.perf_counter()
@@ -661,7 +726,8 @@ def run_scene(spec, s, contestants, cache_dir, m06=None):
         crops[key] = runner.images[(key, p['spp'])]
     result = {
         'spec': dataclasses.asdict(spec),
-        'reference': dict(ref.meta, expected_mse=ref_mse, expected_rel=ref_rel, eps=ref.eps),
+        'reference': dict(ref.meta, expected_mse=ref_mse, expected_rel=ref_rel, eps=ref.eps,
+                          flip_exposure=flip_exposure(ref)),
         'reference06': ref06_info,          # Mitsuba 0.6's contestants are measured against this one
         'reference_of': {c.key: 'reference06' if c.renderer == 'mitsuba06' else 'reference' for c in contestants},
         'overhead06_s': statistics.median(runner.overhead06) if runner.overhead06 else None,
@@ -670,6 +736,7 @@ def run_scene(spec, s, contestants, cache_dir, m06=None):
         'equal_samples': {'spp': es_spp, 'points': es},
         'rays': rays,
         'compile': runner.compile,
+        'denoised': denoised_errors(scene, runner, et) if s.denoise else None,
         'seconds': time.perf_counter() - t0,
     }
     images = {'crops': crops, 'region': ref.region}

@@ -125,7 +125,8 @@ def plot_crops(res, images, contestants, path):
             ax.imshow(tonemap(img[y0:y1, x0:x1], scale, reg), interpolation='nearest')
             if key != 'reference':
                 p = et[key]
-                title = f"{title}\n{p['spp']} spp, {p['time']:.2f} s, relMSE {fmt(p['rel'])}"
+                title = f"{title}\n{p['spp']} spp, {p['time']:.2f} s, relMSE {fmt(p['rel'])}" + \
+                    (f", FLIP {fmt(p['flip'])}" if 'flip' in p else '')
             else:
                 title = f"{title}\n{res['reference']['kind']}"
         ax.set_title(title, fontsize=7.5)
@@ -138,17 +139,25 @@ def plot_crops(res, images, contestants, path):
 def plot_errors(res, contestants, path):
     spec = res['spec']
     ref = res['reference']
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for ax, field, name in ((axes[0], 'rel', 'relative MSE'), (axes[1], 'mse', 'MSE')):
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
+    for ax, field, name in ((axes[0], 'rel', 'relative MSE'), (axes[1], 'mse', 'MSE'),
+                            (axes[2], 'flip', f"FLIP (LDR, exposure {ref.get('flip_exposure', 0):.3g})")):
         for c in contestants:
             pts = sorted(res['sweep'][c.key], key=lambda p: p['time'])
             t = np.array([p['time'] for p in pts])
-            e = np.array([p[field] for p in pts])
+            e = np.array([p.get(field, np.nan) for p in pts])
             color, marker, ls = STYLE.get(c.key, ('k', 'o', '-'))
             ax.plot(t, e, ls, color=color, lw=1.2, label=c.label)
-            ok = np.array([quotable(v, ref_err(res, c.key, field)) for v in e])
+            ok = np.array([field == 'flip' or quotable(v, ref_err(res, c.key, field)) for v in e])
             ax.plot(t[ok], e[ok], marker, color=color, ms=5, ls='none')
             ax.plot(t[~ok], e[~ok], marker, color=color, ms=5, ls='none', mfc='none')
+        if field == 'flip':                 # FLIP has no expected error of the reference to draw
+            ax.set_xscale('log')
+            ax.set_yscale('log')
+            ax.set_xlabel('render time (s, median, after warm-up)')
+            ax.set_ylabel(name)
+            ax.grid(True, which='both', alpha=0.3)
+            continue
         ax.axhline(ref[f'expected_{field}'], color='k', ls=':', lw=1, label="reference's own error")
         ax.axhline(ref[f'expected_{field}'] / QUOTABLE, color='grey', ls='--', lw=0.8, label='quotable above')
         if res.get('reference06'):
@@ -514,7 +523,9 @@ def reference_lines(r):
     how = 'cached' if ref['cached'] else 'rendered in %.0f s' % ref['render_s']
     L += ['', f"Reference's own expected error (the batch variance of its mean, averaged like the errors): MSE "
           f"{fmt(ref['expected_mse'])}, relMSE {fmt(ref['expected_rel'])} ({how}). "
-          f"Contestants' errors include it; figures below {1 / QUOTABLE:g}x it are marked †.", '']
+          f"Contestants' errors include it; figures below {1 / QUOTABLE:g}x it are marked †."
+          + (f" FLIP exposure: {ref['flip_exposure']:.4g} (the reference's 98th percentile maps to white)."
+             if 'flip_exposure' in ref else ''), '']
     r06 = r.get('reference06')
     if r06:
         how06 = 'cached' if r06['cached'] else 'rendered in %.0f s' % r06['render_s']
@@ -548,8 +559,8 @@ def point_tables(r, contestants, names):
         for p in r['sweep'][c.key]:
             rows.append([names[c.key], p['stage'], p['spp'], f"{p['time']:.3f}",
                          qfmt(p['mse'], ref_err(r, c.key, 'mse')), qfmt(p['rel'], ref_err(r, c.key)),
-                         fmt(p['rel_se'])])
-    L += [table(['contestant', 'point', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.'], rows), '',
+                         fmt(p['rel_se']), flip_cell(p)])
+    L += [table(['contestant', 'point', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.', 'FLIP'], rows), '',
           '</details>', '']
     es = r['equal_samples']
     L += [f"### Equal samples ({es['spp']} spp; the form of the paper's Table 1)", '']
@@ -557,8 +568,9 @@ def point_tables(r, contestants, names):
     for c in contestants:
         p = es['points'][c.key]
         rows.append([names[c.key], p['spp'], qfmt(p['mse'], ref_err(r, c.key, 'mse')),
-                     qfmt(p['rel'], ref_err(r, c.key)), f"{p['time']:.3f}"] + rays_cells(r, c.key, p['spp']))
-    L += [table(['contestant', 'spp', 'MSE', 'relMSE', 'time (s)', 'rays (M)', 'zero-contribution rays (M)',
+                     qfmt(p['rel'], ref_err(r, c.key)), flip_cell(p), f"{p['time']:.3f}"]
+                    + rays_cells(r, c.key, p['spp']))
+    L += [table(['contestant', 'spp', 'MSE', 'relMSE', 'FLIP', 'time (s)', 'rays (M)', 'zero-contribution rays (M)',
                  'zero (%)'], rows), '']
     et = r['equal_time']
     L += [f"### Equal time ({et['budget_s']:g} s budget; the form of the paper's Tables 2 and 3)", '']
@@ -566,10 +578,40 @@ def point_tables(r, contestants, names):
     for c in contestants:
         p = et['points'][c.key]
         rows.append([names[c.key], p['spp'], f"{p['time']:.3f}", qfmt(p['mse'], ref_err(r, c.key, 'mse')),
-                     qfmt(p['rel'], ref_err(r, c.key)), fmt(p['rel_se'])] + rays_cells(r, c.key, p['spp']) +
-                    [ratio_cell(r, c.key)[0]])
-    return L + [table(['contestant', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.', 'rays (M)',
-                       'zero-contribution rays (M)', 'zero (%)', 'relMSE / path'], rows), '']
+                     qfmt(p['rel'], ref_err(r, c.key)), fmt(p['rel_se'])] + rays_cells(r, c.key, p['spp'])
+                    + [flip_cell(p), ratio_cell(r, c.key)[0]])
+    L += [table(['contestant', 'spp', 'time (s)', 'MSE', 'relMSE', 'relMSE s.e.', 'rays (M)',
+                 'zero-contribution rays (M)', 'zero (%)', 'FLIP', 'relMSE / path'], rows), '']
+    return L + denoised_lines(r, contestants, names)
+
+
+def flip_cell(p):
+    """A point's mean FLIP (results.json of runs before FLIP have none)."""
+    return fmt(p['flip']) if 'flip' in p else '–'
+
+
+def denoised_lines(r, contestants, names):
+    """--denoise: each contestant's equal-time image, noisy and denoised, in relMSE and FLIP."""
+    d = r.get('denoised')
+    if not d:
+        return []
+    pts = d['points']
+    st = d['settings']
+    base = pts[BASELINE]['denoised']['rel']
+    L = [f"### Denoised at equal time ({r['equal_time']['budget_s']:g} s budget)", '',
+         f"Each contestant's last timed render at the budget, denoised by {st.get('denoiser', '?')} on the "
+         f"{st.get('device', '?')} ({st.get('filter', '?')} filter, HDR, quality {st.get('quality', '?')}) with the "
+         f"albedo and normal of one feature pass at {d['feature_spp']} spp ({d['feature_s']:.2f} s), shared by every "
+         f"contestant; the denoiser's time is not in the budget. Noisy and denoised figures are of that one image "
+         f"(the tables above average every render of the point).", '']
+    rows = []
+    for c in contestants:
+        p = pts[c.key]
+        rows.append([names[c.key], p['spp'], f"{p['time']:.3f}", fmt(p['noisy']['rel']), fmt(p['denoised']['rel']),
+                     fmt(p['noisy']['flip']), fmt(p['denoised']['flip']), f"{p['denoise_s']:.3f}",
+                     f"{p['denoised']['rel'] / base:.3g}" if base > 0 else '–'])
+    return L + [table(['contestant', 'spp', 'time (s)', 'relMSE noisy', 'relMSE denoised', 'FLIP noisy',
+                       'FLIP denoised', 'denoiser (s)', 'denoised relMSE / path denoised'], rows), '']
 
 
 def scene_compile_lines(r, jit, names):
@@ -611,6 +653,12 @@ def method_lines(settings, used06):
             'the reference over the measured pixels (so that dark pixels do not dominate). Each point averages the '
             'errors of all its renders (the warm-up and the timed repeats, each with its own seed); "s.e." is the '
             'standard error of that average (large where a contestant is heavy-tailed).',
+            '- **FLIP.** NVIDIA\'s FLIP (package `flip_evaluator`, its LDR mode at its default 67 pixels per degree) '
+            'of each render against the reference, both tone-mapped the same way: linear radiance times the scene\'s '
+            'exposure (the scale that maps the 98th percentile of the reference\'s luminance over the measured pixels '
+            'to white, stated per scene), clamped to [0, 1], sRGB-encoded; the mean of its error map over the measured '
+            'pixels (over the whole image, flip_evaluator\'s own mean). Averaged over a point\'s renders like the '
+            'MSE. FLIP has no quotability mark: the reference\'s own noise is not separated from it.',
             "- **References.** Rendered once per scene, mode and scene file, and cached under `benchmarks/cache/` "
             "(keyed by the scene file's hash, resolution, depth and sample counts). Their own remaining error is the "
             "variance of their mean estimated from independent batches, summed over the measured pixels: a contestant's "

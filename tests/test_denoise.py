@@ -128,6 +128,36 @@ def test_exr_layers_header_and_png(cornell):
     np.testing.assert_allclose(normal[left_wall], [1, 0, 0], atol=1e-3)
 
 
+def test_report_flip_is_flip_evaluators_own(cornell, reference):
+    """benchmarks/compare_lib.flip_error (the report's FLIP column) is flip_evaluator's mean FLIP
+    of the same LDR pair: both images times the stated exposure (the reference's 98th percentile
+    to white), clamped, sRGB-encoded; over a region, the mean of flip_evaluator's error map there."""
+    import flip_evaluator
+    sys.path.insert(0, os.path.join(REPO, 'benchmarks'))
+    import compare_lib as lib
+    import compare_report as report
+    _, ch, _ = cornell
+    ref = reference[0]
+    raw = stack(ch, '')
+    whole = lib.Reference(ref, np.zeros_like(ref), np.ones(ref.shape[:2], bool), np.zeros(ref.shape[:2]), {})
+    scale = 1.0 / np.quantile(ref.mean(axis=2), 0.98)
+    assert lib.flip_exposure(whole) == pytest.approx(scale, rel=1e-12)
+
+    def ldr(x):
+        x = np.clip(x * scale, 0.0, 1.0)
+        return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
+    emap, own, _ = flip_evaluator.evaluate(ldr(ref), ldr(raw), 'LDR', applyMagma=False)
+    assert own > 0.01                                             # a noisy image: a real difference
+    assert lib.flip_error(raw, whole) == pytest.approx(own, rel=1e-5)
+    assert report.flip_cell({'flip': lib.flip_error(raw, whole)}) == report.fmt(own)
+    half = np.zeros(ref.shape[:2], bool)
+    half[:, :RES // 2] = True
+    region = lib.Reference(ref, np.zeros_like(ref), half, np.zeros(ref.shape[:2]), {})
+    scale = 1.0 / np.quantile(ref.mean(axis=2)[half], 0.98)
+    emap, _, _ = flip_evaluator.evaluate(ldr(ref), ldr(raw), 'LDR', applyMagma=False)
+    assert lib.flip_error(raw, region) == pytest.approx(float(emap[:, :, 0][half].mean()), rel=1e-5)
+
+
 # ----------------------------------------------------------------------------- the feature pass
 def glass_slab_scene():
     """A camera looking down at a diffuse floor through a tilted slab of smooth glass that fills
