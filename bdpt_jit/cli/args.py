@@ -148,6 +148,13 @@ def build_parser():
                    help=f'Mitsuba variant (default: {GPU_VARIANT} where a CUDA GPU is present, '
                         f'else {DEFAULT_VARIANT})')
     r.add_argument('--seed', type=_seed, default=0, help='random seed (default: 0)')
+    r.add_argument('--cluster', metavar='auto|local|ADDRESS', default=None,
+                   help="render the samples on a Ray cluster, in chunks (docs/cluster.md): 'local' starts "
+                        "a Ray instance for this machine's cores and GPUs, 'auto' joins the running cluster, "
+                        "or a Ray address (needs pip install -e '.[cluster]')")
+    r.add_argument('--chunk-spp', type=_positive_int, default=None, metavar='N',
+                   help='with --cluster: samples per pixel of a chunk (one Ray task; default: the spp over '
+                        'twice the cluster\'s slots, with --time --pass-spp)')
     r.add_argument('--denoise', action='store_true',
                    help="also denoise the image (Open Image Denoise on llvm_* variants, OptiX on cuda_*; "
                         "albedo and normal from a feature pass): denoised, albedo and normal EXR layers, and "

@@ -49,7 +49,11 @@ def cmd_render(args, guard):
         integ = prepare_bdpt(args, scene, integ)
         settings = dict(integ.settings)
 
-    res = render(args, scene, integ, is_bdpt, guard)
+    if args.cluster:                                # the samples on a Ray cluster (cluster.py)
+        from ..cluster import render_cli
+        res = render_cli(args, scene, integ, settings, guard, defines)
+    else:
+        res = render(args, scene, integ, is_bdpt, guard)
     img, layers = res.mean()
     aov_names = list(getattr(integ, 'aov_channels', ()))
     colour = img[:, :, :img.shape[2] - len(aov_names)]

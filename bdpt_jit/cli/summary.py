@@ -68,6 +68,7 @@ def statistics(args, res, settings, variant, scene_path, defines, wall_s):
         stats.update(_bdpt_statistics(res.info))
     if res.layers is not None:
         stats['layers'] = ' '.join(res.layers)
+    stats.update(getattr(res, 'cluster_stats', None) or {})     # --cluster: cluster.* (cluster.py)
     return stats
 
 
@@ -117,6 +118,8 @@ def print_summary(stats, res, out, png):
     if any(k.startswith('denoise.') for k in stats):
         from ..denoise.command import summary_text
         p(f"  denoised        {summary_text(stats)}")
+    for line in getattr(res, 'cluster_lines', ()):               # --cluster: chunks, nodes, overheads
+        p(line)
     p(f"  wrote           {out}, {png}")
 
 
