@@ -19,8 +19,8 @@ from .context import Context
 from .film import FilmAccumulator
 from .light_path import LightTracer
 from .merge import MergeSchedule, Merger, PhotonGrid
-from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, RenderHooks, caused_by_interrupt, count_passes,
-                     light_capacity, pass_seed, plan_passes)
+from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
+                     count_passes, light_capacity, pass_seed, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
 from .store import LightStore
@@ -112,9 +112,37 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     def render_pass(self, ctx, acc, seed, i, spp_pass, pixel_start, pixel_count):
         """Pass ``i``: spp_pass samples in each of pixel_count crop pixels from pixel_start.
         Returns the light-vertex levels it used."""
+        ps = self.pass_state(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
+        if ctx.strategies.light_pass:
+            cap = self.light_capacity(ctx)
+            ps.store = LightStore(n=ps.n, capacity=cap, record=ctx.record) if cap > 0 else None
+            LightTracer(ctx, ps).trace()
+            # Evaluate what the light subpaths leave to the camera pass (the sampler's state, the
+            # stored vertices' counts): left symbolic, the camera kernel would trace every light
+            # subpath again to recompute them (SmallVCM box: 2838 operations and 683 ms, against
+            # 1742 and 549 ms with them read from memory)
+            if ctx.strategies.camera_pass:
+                ps.sampler.schedule_state()
+                if ps.store is not None:
+                    dr.schedule(ps.store.count)
+                dr.eval()
+        if ctx.strategies.trace_merge:
+            ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
+            self.last_merge_radius = ps.schedule.r_last
+        if ctx.strategies.camera_pass:
+            CameraTracer(ctx, ps).trace()
+        dr.eval(acc.cam.tensor(), acc.lt.tensor())
+        if ctx.layers is not None:
+            dr.eval(ctx.layers.buf)
+        if ctx.stats is not None:
+            ctx.stats.end_pass()
+        return ps.store.capacity if ps.store is not None else 0
+
+    def pass_state(self, ctx, acc, seed, i, spp_pass, pixel_start, pixel_count):
+        """The passes.PassState of pass ``i``: its sampler, wavelengths and merging schedule
+        (which advances the merge iteration count)."""
         n = spp_pass * pixel_count
-        sensor = ctx.sensor
-        sampler = sensor.sampler().clone()
+        sampler = ctx.sensor.sampler().clone()
         sampler.set_sample_count(spp_pass)
         sampler.seed(pass_seed(seed, i), n)
         u_wl, spectral = None, None
@@ -128,38 +156,17 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 # the first pixel's wavelengths, so a light vertex's throughput is for the camera
                 # vertex's wavelengths
                 u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
-            spectral = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
-        store, merger, schedule = None, None, None
+            spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
+        schedule, eta = None, None
         if ctx.strategies.trace_merge:
             s = self.settings
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
                                      spp_pass, pixel_count)
             self.merge_iteration += spp_pass
-            ctx.mis.set_radius(schedule.eta(dr.arange(mi.UInt32, n)))      # each sample's eta = pi r^2 N
-        if ctx.strategies.light_pass:
-            cap = self.light_capacity(ctx)
-            store = LightStore(n=n, capacity=cap, record=ctx.record) if cap > 0 else None
-            LightTracer(ctx).trace(sampler, n, acc, store, spectral)
-            # Evaluate what the light subpaths leave to the camera pass (the sampler's state, the
-            # stored vertices' counts): left symbolic, the camera kernel would trace every light
-            # subpath again to recompute them (SmallVCM box: 2838 operations and 683 ms, against
-            # 1742 and 549 ms with them read from memory)
-            if ctx.strategies.camera_pass:
-                sampler.schedule_state()
-                if store is not None:
-                    dr.schedule(store.count)
-                dr.eval()
-        if ctx.strategies.trace_merge:
-            merger = Merger(ctx, PhotonGrid(ctx.scene, store, schedule))
-            self.last_merge_radius = schedule.r_last
-        if ctx.strategies.camera_pass:
-            CameraTracer(ctx).trace(sampler, n, spp_pass, pixel_start, acc, store, u_wl, merger)
-        dr.eval(acc.cam.tensor(), acc.lt.tensor())
-        if ctx.layers is not None:
-            dr.eval(ctx.layers.buf)
-        if ctx.stats is not None:
-            ctx.stats.end_pass()
-        return store.capacity if store is not None else 0
+            eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
+        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta))
+        ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
+        return ps
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {

@@ -23,8 +23,8 @@ that two of them hash to (it would count its vertices twice), in one loop over t
 import drjit as dr
 import mitsuba as mi
 
-from .connect import eval_camera_vertex
 from .jitmath import safe_div
+from .vertex import RADIANCE
 
 _PRIMES = (73856093, 19349663, 83492791)    # spatial hash (Teschner et al. 2003)
 
@@ -140,9 +140,10 @@ class PhotonGrid:
 class Merger:
     """The merging estimate at camera vertices, for the CameraTracer (owned per pass)."""
 
-    def __init__(self, ctx, grid):
+    def __init__(self, ctx, grid, mis):
         self.ctx = ctx
         self.grid = grid
+        self.mis = mis              # the pass's mis.MIS (its merging radius)
 
     def ranges(self, p, group, active=True):
         """The entries of the 2 x 2 x 2 cells around ``p`` in iteration ``group``: each cell's
@@ -157,10 +158,11 @@ class Merger:
             totals.append(totals[-1] + dr.select(d, 0, end - first))
         return starts, totals
 
-    def merge_one(self, k, si, bsdf, depth, d_vcm, d_vm, group, radius2, active):
-        """Entry ``k`` of the sorted grid merged with camera vertex ``si`` of iteration
-        ``group`` (unnormalised)."""
+    def merge_one(self, k, v, sub, group, radius2, active):
+        """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex) of the
+        camera subpath ``sub`` of iteration ``group`` (unnormalised)."""
         c, g = self.ctx, self.grid
+        si = v.si
         st = g.store
         slot = dr.gather(mi.UInt32, g.slots, k, active)
         record = st.record
@@ -170,26 +172,27 @@ class Merger:
         # outside the radius, and their masked-off lanes then read nothing more
         first = dr.gather(mi.Vector4f, st.v, slot * record.packets(), ok)
         ok &= dr.squared_norm(mi.Point3f(first.x, first.y, first.z) - si.p) <= radius2
-        v = record.load(st.v, slot, ok)
-        ok &= v.depth_at(level) + depth <= c.max_depth_edges
-        y = v.interaction(c.time, si.wavelengths)
+        rec = record.load(st.v, slot, ok)
+        ok &= rec.depth_at(level) + sub.depth <= c.max_depth_edges
+        y = rec.interaction(c.time, si.wavelengths)
         wl = y.to_world(y.wi)                       # towards the light subpath's previous vertex
-        f, pdf_dir_w, pdf_rev_w = eval_camera_vertex(si, bsdf, wl, ok, c.diffuse)
+        f, pdf_dir_w, pdf_rev_w, _ = v.eval(c, wl, RADIANCE, ok)
         # beta_y is flux per unit area of y's surface (its geometric normal): on a mesh with
         # interpolated normals a light vertex on the neighbouring triangle reaches z's triangle
         # at grazing angles, where 1 / |cos_g| of z would explode (fireflies up to 42x the
         # median on a smooth torus); for light vertices on z's own plane the two are one
-        value = f * v.beta * safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
+        value = f * rec.beta * safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
-        l_vm = v.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
-        w = c.mis.weight_merge(v.d_vcm, l_vm, d_vcm, d_vm, pdf_dir_w, pdf_rev_w)
+        l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
+        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w)
         return dr.select(ok, value * w, 0.0)
 
     @dr.syntax
-    def gather(self, idx, si, bsdf, depth, beta, d_vcm, d_vm, active):
-        """Radiance towards the camera subpath of sample ``idx`` from merging at ``si``: the
-        estimate over its iteration's light vertices within that iteration's radius, times the
-        camera throughput ``beta``."""
+    def gather(self, idx, v, sub, active):
+        """Radiance towards the camera subpath ``sub`` of sample ``idx`` from merging at its
+        vertex ``v``: the estimate over its iteration's light vertices within that iteration's
+        radius, times the camera throughput."""
+        si = v.si
         sched = self.grid.schedule
         group = sched.group(idx)
         r = sched.radius(group)
@@ -204,6 +207,6 @@ class Merger:
             k = starts[0] + e
             for q in range(1, 8):
                 k = dr.select(e >= totals[q], starts[q] + (e - totals[q]), k)
-            total += self.merge_one(k, si, bsdf, depth, d_vcm, d_vm, group, radius2, active)
+            total += self.merge_one(k, v, sub, group, radius2, active)
             e += 1
-        return beta * total * norm
+        return sub.beta * total * norm

@@ -54,9 +54,27 @@ waits in ``pend_vc``/``pend_vm`` until the next vertex turns out delta (``absorb
 not (dropped); the last light vertex of a connection, splat or merge has a non-delta neighbour.
 """
 
+import copy
+
 import drjit as dr
+import mitsuba as mi
 
 from .strategies import StrategySet
+
+
+class MISState:
+    """The running MIS quantities of one subpath, as its walk carries them (all under h)."""
+    DRJIT_STRUCT = {
+        'd_vcm': mi.Float,      # [eq. 22] vc_i: 1 / the forward density of the current vertex
+        'd_vc': mi.Float,       # [eq. 22] vcm_i: the strategies further back, recursively (eq. 21)
+        'd_vm': mi.Float,       # [VCM (33), (36)] the merges further back (vcm; 0 otherwise)
+        'pend_vc': mi.Float,    # light side, merges behind delta only: the last vertex's merge in d_vc, waiting
+        'pend_vm': mi.Float,    # the same merge's term in d_vm (absorb_pending)
+    }
+
+    def __init__(self, d_vcm=None, d_vc=None, d_vm=None, pend_vc=None, pend_vm=None):
+        self.d_vcm, self.d_vc, self.d_vm = d_vcm, d_vc, d_vm
+        self.pend_vc, self.pend_vm = pend_vc, pend_vm
 
 
 def _gate(x, ok):
@@ -102,6 +120,14 @@ class MIS:
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
         self.merge_everywhere = merge_everywhere
         self.pending = self.mis_merges and not merge_everywhere     # light side defers its merge terms
+
+    def for_pass(self, eta=None):
+        """This MIS with the pass's eta = pi r^2 N (merges; None: no merges): a copy, so that
+        per-pass values travel with the pass and the Context's MIS is never written."""
+        out = copy.copy(self)
+        if eta is not None:
+            out.set_radius(eta)
+        return out
 
     def set_radius(self, eta):
         """The pass's eta = pi r^2 N (an opaque mi.Float: changing it recompiles nothing)."""
@@ -181,6 +207,54 @@ class MIS:
         d_vcm_delta = 0.0 * d_vcm                                                       # [eq. 22] no connection here
         return (dr.select(is_delta, d_vcm_delta, d_vcm_smooth),
                 dr.select(is_delta, d_vc_delta, d_vc_smooth))
+
+    # ------------------------------------------------------------------ events of a walk
+    # Each event of a subpath updates its MISState in one place: the start (camera_start,
+    # light_start), the hit of the next vertex (hit) and the scatter there (scatter).
+    def camera_start(self, pdf_cam_w, dist2, cos_hit):
+        """The camera subpath's state at its first hit z1 (``dist2``: the first edge's squared
+        length from the lens point; ``cos_hit``: |cos| at z1)."""
+        d_vcm, d_vc = self.camera_init(pdf_cam_w)
+        d_vcm, d_vc = self.on_hit(d_vcm, d_vc, dist2, cos_hit)
+        d_vm = dr.zeros(mi.Float, dr.width(cos_hit))         # [VCM (31)-(33)] no merge behind the camera
+        return MISState(d_vcm, d_vc, d_vm, mi.Float(0.0), mi.Float(0.0))
+
+    def light_start(self, pdf_emit_w, cos_e, is_delta, pdf_direct_a, dist2, cos_hit):
+        """The light subpath's state at its first hit y1 (arguments as light_init's and
+        light_first_hit's)."""
+        n = dr.width(cos_hit)
+        d_vc = self.light_init(pdf_emit_w, cos_e, is_delta)
+        d_vm = self.vm_init_light(d_vc)                      # (vc_factor 0 without merges: unused then)
+        d_vcm, d_vc = self.light_first_hit(d_vc, pdf_emit_w, pdf_direct_a, dist2, cos_hit)
+        d_vm = self.vm_on_hit(d_vm, cos_hit) if self.mis_merges else dr.zeros(mi.Float, n)
+        # a merge's terms waiting for the next vertex (none behind y0)
+        pend = (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)) if self.pending else (mi.Float(0.0), mi.Float(0.0))
+        return MISState(d_vcm, d_vc, d_vm, pend[0], pend[1])
+
+    def hit(self, st, dist2, cos_hit, camera_side):
+        """The next vertex found at squared distance ``dist2``, |cos| ``cos_hit`` there."""
+        d_vcm, d_vc = self.on_hit(st.d_vcm, st.d_vc, dist2, cos_hit)
+        d_vm = self.vm_on_hit(st.d_vm, cos_hit) if self.mis_merges else st.d_vm
+        pend_vc, pend_vm = st.pend_vc, st.pend_vm
+        if self.pending and not camera_side:
+            pend_vc, pend_vm = self.vm_on_hit(pend_vc, cos_hit), self.vm_on_hit(pend_vm, cos_hit)
+        return MISState(d_vcm, d_vc, d_vm, pend_vc, pend_vm)
+
+    def scatter(self, st, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here=True):
+        """The vertex scattered towards a direction of density ``pdf_fwd_w`` (arguments as
+        on_scatter's; ``merge_here`` on the camera side only: the light side defers its merge
+        terms where merges exist behind delta vertices only)."""
+        d_vcm, d_vc, d_vm, pend_vc, pend_vm = st.d_vcm, st.d_vc, st.d_vm, st.pend_vc, st.pend_vm
+        if not camera_side:
+            merge_here = not self.pending
+            if self.pending:
+                d_vc, d_vm = self.absorb_pending(d_vc, d_vm, pend_vc, pend_vm, is_delta)
+                pend_vc, pend_vm = self.pending_after_scatter(cos_out, pdf_fwd_w, is_delta)
+        if self.mis_merges:
+            d_vm = self.vm_on_scatter(d_vm, d_vcm, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, merge_here)
+        d_vcm, d_vc = self.on_scatter(d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta,
+                                      camera_side=camera_side, merge_here=merge_here)
+        return MISState(d_vcm, d_vc, d_vm, pend_vc, pend_vm)
 
     # ------------------------------------------------------------------ merging recursion
     # d_vm: the merging strategies (and, through vc_factor, the connections) further back,

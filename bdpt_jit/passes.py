@@ -108,6 +108,24 @@ def count_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
     return spp * -(-n_pixels // budget)
 
 
+class PassState:
+    """What the kernels of one pass share besides the Context (a plain class: Dr.Jit does not
+    traverse it, so nothing here becomes loop state). Set by the integrator's render_pass."""
+
+    def __init__(self, sampler, n, spp_pass, pixel_start, film, mis):
+        self.sampler = sampler          # the pass's sampler, seeded for its n samples
+        self.n = n                      # samples in the pass (one camera and one light subpath each)
+        self.spp_pass = spp_pass        # consecutive samples per pixel
+        self.pixel_start = pixel_start  # the pass's first crop pixel
+        self.film = film                # film.FilmAccumulator
+        self.mis = mis                  # mis.MIS of the pass (MIS.for_pass: its merging radius)
+        self.spectral = None            # spectral variants: (wavelengths, their sampling weight) per sample
+        self.u_wl = None                # spectral variants: the wavelength sample that chose them
+        self.store = None               # store.LightStore of the light vertices, or None
+        self.schedule = None            # merge.MergeSchedule of the pass's iterations (vcm, vm), or None
+        self.merger = None              # merge.Merger (vcm, vm), or None
+
+
 class RenderHooks:
     """What a caller may attach to a ``bdpt`` integrator (``integrator.hooks``) to follow a
     render and stop it. Both are called between passes, never inside a kernel:

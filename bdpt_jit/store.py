@@ -9,6 +9,8 @@ no vertex is ever dropped, so every strategy the MIS weights count is really ava
 import drjit as dr
 import mitsuba as mi
 
+from .vertex import Vertex
+
 
 # Every field a light vertex can need, in storage order. A scene stores only those its BSDFs
 # and shapes read (record_type): scatter and gather cost per word on the CPU (measured: storing
@@ -46,16 +48,24 @@ class VertexRecord:
     DRJIT_STRUCT = {}
 
     @classmethod
-    def make(cls, si, err, bsdf, beta, d_vcm, d_vc, depth, d_vm=None):
-        v = cls()
-        d_vm = 0.0 * d_vc if d_vm is None else d_vm
-        src = {'p': si.p, 'err': err, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
+    def make(cls, v, sub):
+        """The record of vertex ``v`` (vertex.Vertex) of the light subpath ``sub``
+        (transport.Subpath: its throughput, MIS quantities and depth there)."""
+        r = cls()
+        si, m = v.si, sub.mis
+        d_vm = 0.0 * m.d_vc if m.d_vm is None else m.d_vm
+        src = {'p': si.p, 'err': v.err, 'n': si.n, 'n_s': si.sh_frame.n, 's': si.sh_frame.s, 'uv': si.uv,
                'wi': si.wi if 's' in cls.DRJIT_STRUCT else si.to_world(si.wi),
-               'shape': si.shape, 'bsdf': bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
-               'dp_dv': si.dp_dv, 'beta': beta, 'd_vcm': d_vcm, 'd_vc': d_vc, 'd_vm': d_vm, 'depth': depth}
+               'shape': si.shape, 'bsdf': v.bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
+               'dp_dv': si.dp_dv, 'beta': sub.beta, 'd_vcm': m.d_vcm, 'd_vc': m.d_vc, 'd_vm': d_vm,
+               'depth': sub.depth}
         for k in cls.DRJIT_STRUCT:           # unused fields are never evaluated (lazy JIT)
-            setattr(v, k, src[k])
-        return v
+            setattr(r, k, src[k])
+        return r
+
+    def vertex(self, time, wavelengths=None):
+        """The stored vertex as a vertex.Vertex (``interaction``'s arguments)."""
+        return Vertex(self.interaction(time, wavelengths), self.bsdf, self.err)
 
     # ---------------------------------------------------------------- packed storage
     # A record is stored as consecutive float words, padded to whole packets of 4: one vertex

@@ -273,6 +273,6 @@ def test_a_bucket_shared_by_neighbouring_cells_is_read_once():
     grid.mask = dr.opaque(mi.UInt32, 0)                      # one bucket
     grid.schedule = MergeSchedule(scene, 0.01, 0.75, 1, 1, 16)
     grid.start = mi.UInt32([0, 5])                            # bucket 0: entries 0..4
-    starts, totals = Merger(None, grid).ranges(mi.Point3f([0.3, 1.7], [0.2, -0.4], [0.0, 0.0]), mi.UInt32(0))
+    starts, totals = Merger(None, grid, None).ranges(mi.Point3f([0.3, 1.7], [0.2, -0.4], [0.0, 0.0]), mi.UInt32(0))
     assert np.array(totals[8]).tolist() == [5, 5]
     assert np.array(starts[0]).tolist() == [0, 0]

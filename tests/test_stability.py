@@ -181,7 +181,7 @@ def test_finite(case, technique, mis):
     `mis.light_first_hit` made it d_vcm = inf, and in `mis.weight_connect`
     h(pdf_cam_to_light_a) = pdf^2 underflowed to 0: 0 * inf = NaN. Guard now: where the
     density is computed, `jitmath.finite_or_zero` in `EmitterTable.pdf_direct_first_hit`,
-    `EmitterTable.pdf_direct_a` and `CameraTracer.strategy_env` (test_guard_emitter_sampling_density_infinite)."""
+    `EmitterTable.pdf_direct_a` and `CameraTracer.strategy_s0_env` (test_guard_emitter_sampling_density_infinite)."""
     build, max_depth = CASES[case]
     img = render(build(), bdpt(technique, mis, max_depth), spp=16, seed=1)
     assert_valid(img, f'{case} {technique}/{mis}')
@@ -295,7 +295,7 @@ def test_agreement(params):
       strategy but s=1 was weighted against Mitsuba's infinite s=1 density while s=1 itself
       returns weight 0, so the direct light was lost. Guard now: `jitmath.finite_or_zero`
       where the emitter-sampling density is computed (`EmitterTable.pdf_direct_first_hit`,
-      `pdf_direct_a`, `CameraTracer.strategy_env`): s=1 cannot sample those paths.
+      `pdf_direct_a`, `CameraTracer.strategy_s0_env`): s=1 cannot sample those paths.
     - negative_scale (every technique but pt): light subpaths died at every mirrored mesh or
       rectangle (lt rendered 0, bdpt -27%): Mitsuba gives those shapes a geometric normal
       opposite to their shading normal, and `connect.adjoint_correction` refused every
@@ -861,14 +861,14 @@ def test_sphere_emitter_sampling_irradiance(r, d):
 
 
 def test_guard_connection_nearly_touching():
-    """`camera_path.CameraTracer.connect_one`: G = 1 / dist2 of the connection edge, guarded by
+    """`camera_path.CameraTracer.strategy_st`: G = 1 / dist2 of the connection edge, guarded by
     `dist2 > 0` and `safe_div(1, dist2)`. In the corner at the origin (where float32 is
     densest) a camera vertex on one face and a light vertex on the other at distance delta:
     the weighted contribution must stay finite and fall with delta -- no spike, no NaN -- down
     to the vertices touching (delta = 0).
     Needed a fix: at delta = 1e-20, dist2 = 2e-40 is a subnormal float, so 1 / dist2 = inf,
     the power-heuristic weight is 0, and inf * 0 = NaN. Guard now: the unweighted contribution
-    must be finite where it is formed, in `connect_one` (one guard: the test fails without it). (Reaching it in a render needs both vertices within ~1e-19 of each other, i.e.
+    must be finite where it is formed, in `strategy_st` (one guard: the test fails without it). (Reaching it in a render needs both vertices within ~1e-19 of each other, i.e.
     coordinates that small: a corner at the origin hit exactly.)"""
     from bdpt_jit.camera_path import CameraTracer
     from bdpt_jit.store import StoredVertex
@@ -882,11 +882,20 @@ def test_guard_connection_nearly_touching():
     assert np.all(np.array(si_c.is_valid() & si_l.is_valid()))
     si_c.p = mi.Point3f(mi.Float(deltas), 0.0, 0.3)
     si_l.p = mi.Point3f(0.0, mi.Float(deltas), 0.3)
-    v = StoredVertex.make(si_l, mi.Float(0.0), si_l.bsdf(), mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.UInt32(1))
-    st = StoredVertex.allocate(n)
-    StoredVertex.store(st, v, dr.arange(mi.UInt32, n), mi.Bool(True))
-    L = CameraTracer(ctx).connect_one(StoredVertex, st, dr.arange(mi.UInt32, n), si_c, si_c.bsdf(), mi.UInt32(1),
-                                      mi.Color3f(1.0), mi.Float(1.0), mi.Float(1.0), mi.Bool(True))
+    from bdpt_jit.mis import MISState
+    from bdpt_jit.passes import PassState
+    from bdpt_jit.store import LightStore
+    from bdpt_jit.transport import Subpath
+    from bdpt_jit.vertex import Vertex
+    one = lambda: mi.Float(1.0)     # noqa: E731
+    sub = Subpath(beta=mi.Color3f(1.0), mis=MISState(one(), one()), depth=mi.UInt32(1), active=mi.Bool(True))
+    store = LightStore(n=n, capacity=1, record=StoredVertex)
+    StoredVertex.store(store.v, StoredVertex.make(Vertex(si_l, si_l.bsdf(), mi.Float(0.0)), sub),
+                       dr.arange(mi.UInt32, n), mi.Bool(True))
+    ps = PassState(None, n, 1, 0, None, ctx.mis.for_pass())
+    ps.store = store
+    L = CameraTracer(ctx, ps).strategy_st(dr.arange(mi.UInt32, n), mi.UInt32(0), Vertex.at(ctx, si_c), sub,
+                                          mi.Bool(True))
     val = np.array(L)[0]
     bad = {float(d): float(x) for d, x in zip(deltas, val) if not np.isfinite(x)}
     assert not bad, f'non-finite weighted connections at delta: {bad}'

@@ -1,0 +1,113 @@
+"""One step of a subpath's random walk, for both directions: scatter at a vertex (the BSDF
+sampled in radiance mode for camera subpaths, in importance mode, the adjoint, for light
+subpaths), Russian roulette, the next vertex, and the MIS events of both (mis.MIS.scatter,
+mis.MIS.hit). The two tracers (camera_path.py, light_path.py) differ only in the strategies
+they evaluate at each vertex; the walk between vertices is this module."""
+
+import drjit as dr
+import mitsuba as mi
+
+from . import gradients
+from .connect import CTX_IMPORTANCE, CTX_RADIANCE, adjoint_correction, adjoint_eval, reverse_pdf_w
+from .jitmath import safe_div
+from .mis import MISState
+from .roulette import roulette
+from .vertex import RADIANCE
+
+
+class Subpath:
+    """The state a subpath's walk carries from vertex to vertex, one field a line."""
+    DRJIT_STRUCT = {
+        'beta': mi.Spectrum,      # throughput up to the current vertex: We / p (camera), Le / p (light)
+        'beta_start': mi.Float,   # max component of the throughput at the start (the roulette's reference)
+        'mis': MISState,          # the running MIS quantities (mis.py)
+        'depth': mi.UInt32,       # edges from the subpath's start to the current vertex
+        'active': mi.Bool,        # the walk goes on
+    }
+
+    def __init__(self, beta=None, beta_start=None, mis=None, depth=None, active=None):
+        self.beta, self.beta_start, self.mis = beta, beta_start, mis
+        self.depth, self.active = depth, active
+
+
+def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
+    """(throughput factor of an importance-mode sample where the exact adjoint replaces it, or
+    None; the reverse density of the incident direction) at vertex ``v``."""
+    si, bsdf = v.si, v.bsdf
+    bsdf_ctx = CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
+    if mode != RADIANCE and ctx.exact_adjoint:
+        # BSDFs with their own shading frame (normal/bump maps): the exact adjoint value over
+        # the sampling density for smooth samples (Veach's factor for delta ones: the caller's)
+        smooth_sample = active & ~is_delta if ctx.has_delta else active
+        f_adj, pdf_rev_adj, _ = adjoint_eval(si, bsdf, bs.wo, wo_world, smooth_sample)
+        return (smooth_sample, f_adj * safe_div(1.0, bs.pdf)), dr.select(smooth_sample, pdf_rev_adj, 0.0)
+    if ctx.has_delta:
+        return None, dr.select(is_delta, 0.0,
+                               reverse_pdf_w(bsdf, bsdf_ctx, si, bs.wo, active & ~is_delta, ctx.diffuse))
+    return None, reverse_pdf_w(bsdf, bsdf_ctx, si, bs.wo, active, ctx.diffuse)
+
+
+def _sample(ctx, mode, sampler, v, active):
+    """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (bs, the throughput
+    factor, the outgoing direction in world space, the reverse density, active, the delta mask
+    or None, the samples)."""
+    si = v.si
+    u1, u2 = sampler.next_1d(), sampler.next_2d()
+    bs, bsdf_w = gradients.sample_bsdf(ctx, v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
+                                       si, u1, u2, active)
+    wo_world = si.to_world(bs.wo)
+    factor = bsdf_w
+    if mode != RADIANCE:       # the adjoint's shading-normal factor (connect.adjoint_correction)
+        corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
+        active = active & ok
+        factor = bsdf_w * corr
+    active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
+    is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) if ctx.has_delta else None
+    exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta)
+    if exact is not None:
+        factor = dr.select(exact[0], exact[1], factor)
+    return bs, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2)
+
+
+def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
+    """Sample the next direction at vertex ``v`` of subpath ``sub`` (``mis``: the pass's
+    mis.MIS; ``merge_here``: camera side, whether a merge at ``v`` is a strategy). Updates the
+    throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
+    the delta mask or None without delta lobes, the lobe and direction samples)."""
+    bs, factor, wo_world, pdf_rev_w, active, is_delta, u = _sample(ctx, mode, sampler, v, sub.active)
+    beta = sub.beta * factor
+    camera_side = mode == RADIANCE
+    if ctx.ad and not camera_side:   # the factor without derivatives: the edge's derivative comes with edge_ratio
+        beta = mi.Spectrum(sub.beta * dr.detach(beta * safe_div(1.0, dr.detach(sub.beta))))
+    st = mis.scatter(sub.mis, v.cos(wo_world), bs.pdf, pdf_rev_w, is_delta, camera_side, merge_here)
+    if camera_side and ctx.strategies.ppm:     # vm: only delta lobes go on (a smooth one was merged)
+        active = active & (is_delta if is_delta is not None else False)
+    if not camera_side and mis.camera_chains and is_delta is not None:
+        active = active & ~is_delta      # delta chains are crossed from the camera side only (mis.py)
+    # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
+    beta, active = roulette(beta, sub.beta_start, sub.depth, ctx.rr_depth, active, sampler.next_1d())
+    ray = v.spawn(wo_world)
+    return (dr.detach(ray) if ctx.ad else ray), Subpath(beta, sub.beta_start, st, sub.depth, active), is_delta, u
+
+
+def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
+    """Scatter at ``v`` and find the next vertex (in a differentiable pass a material point,
+    the edge's derivative in the throughput: gradients.py). Returns (the ray, the next hit, the
+    Subpath, the squared edge length between the two vertices, whether ``v`` scattered through
+    a delta lobe). The hit is not yet accounted for: ``arrive`` does that."""
+    ray, sub, is_delta, u = scatter(ctx, mis, mode, sampler, v, sub, merge_here)
+    si_next, beta, dist2 = gradients.next_vertex(ctx, mode == RADIANCE, v.si, v.bsdf, ray, u, is_delta,
+                                                 sub.beta, sub.active)
+    sub.beta = beta
+    if ctx.stats is not None:
+        ctx.stats.ray('camera' if mode == RADIANCE else 'light', sub.active, si_next.is_valid())
+    was_delta = is_delta if is_delta is not None else mi.Bool(False)
+    return ray, si_next, sub, dist2, was_delta
+
+
+def arrive(mis, mode, sub, si, ray, dist2):
+    """The walk reaches the hit ``si`` of ``ray`` (``dist2``: the edge's squared length): lanes
+    that left the scene end, the MIS quantities take the edge's change of measure, depth + 1."""
+    active = sub.active & si.is_valid()
+    st = mis.hit(sub.mis, dist2, dr.abs(dr.dot(si.n, ray.d)), mode == RADIANCE)
+    return Subpath(sub.beta, sub.beta_start, st, sub.depth + 1, active)

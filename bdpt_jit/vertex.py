@@ -1,0 +1,89 @@
+"""A subpath vertex and what every strategy asks of it: its value towards a direction in either
+transport mode with both densities, the cosine there, the rays it spawns, and the one
+visibility test between two points, which returns a transmittance.
+
+A vertex today is a point on a surface: the hit (``si``: position, geometric normal, shading
+frame, incident direction, shape), its scatterer (the BSDF) and the bound on its position's
+floating-point error (rays.RayOffsets), from which every ray it spawns is offset. A vertex kind
+without a surface (a medium vertex) would answer ``cos`` with 1 and evaluate a phase function:
+the strategies reach vertices only through these operations."""
+
+import drjit as dr
+import mitsuba as mi
+
+from .connect import eval_camera_vertex, eval_light_vertex, smooth_mask
+from .rays import spawn, spawn_to, spawn_to_emitter
+
+RADIANCE = 'radiance'           # a camera subpath's vertex: it transports radiance
+IMPORTANCE = 'importance'       # a light subpath's vertex: it transports importance
+
+
+class Vertex:
+    """One vertex, one field a line (a Dr.Jit struct: it can be stored, selected, carried)."""
+    DRJIT_STRUCT = {
+        'si': mi.SurfaceInteraction3f,    # the hit: p, geometric normal n, sh_frame, wi (local), shape
+        'bsdf': mi.BSDFPtr,               # the scatterer
+        'err': mi.Float,                  # bound on the position's error (rays.RayOffsets.error)
+    }
+
+    def __init__(self, si=None, bsdf=None, err=None):
+        self.si, self.bsdf, self.err = si, bsdf, err
+
+    @classmethod
+    def at(cls, ctx, si, ray=None):
+        """The vertex at the hit ``si`` (``ray``: the ray that found it, for the BSDF lookup)."""
+        return cls(si, si.bsdf(ray) if ray is not None else si.bsdf(), ctx.offsets.error(si.p, si.shape))
+
+    @property
+    def p(self):
+        return self.si.p
+
+    def cos(self, w):
+        """|cos| between the geometric normal and the unit direction ``w``."""
+        return dr.abs(dr.dot(self.si.n, w))
+
+    def smooth(self, table=None):
+        """Lanes whose scatterer has a smooth (connectable) component."""
+        return smooth_mask(self.bsdf, table)
+
+    def eval(self, ctx, wo_world, mode, active):
+        """The vertex's value towards ``wo_world`` (radiance mode: f |cos_s|; importance mode:
+        the adjoint with its change of measure, connect.eval_light_vertex), the forward density
+        of ``wo_world`` and the reverse density of the incident direction, per unit solid angle.
+        Returns (value, pdf_fwd_w, pdf_rev_w, valid)."""
+        if mode == RADIANCE:
+            f, pdf_fwd_w, pdf_rev_w = eval_camera_vertex(self.si, self.bsdf, wo_world, active, ctx.diffuse)
+            return f, pdf_fwd_w, pdf_rev_w, active
+        return eval_light_vertex(self.si, self.bsdf, wo_world, active, ctx.exact_adjoint, ctx.diffuse)
+
+    def spawn(self, d):
+        """An extension ray in the unit direction ``d``."""
+        si = self.si
+        return spawn(si.p, si.n, self.err, d, si.time, si.wavelengths)
+
+    def spawn_to(self, ctx, q, n_q, err_q):
+        """A shadow ray to the point ``q`` (``n_q``, ``err_q``: its surface, or zero and 0 for a
+        point on none)."""
+        si = self.si
+        return spawn_to(si.p, si.n, self.err, q, n_q, err_q, si.time, ctx.offsets.far_rel, si.wavelengths)
+
+    def spawn_to_emitter(self, ctx, ds):
+        """A shadow ray to the emitter sample ``ds`` (rays.spawn_to_emitter)."""
+        si = self.si
+        return spawn_to_emitter(si.p, si.n, self.err, ds, ctx.emitters.error_at(ds), si.time,
+                                ctx.offsets.far_rel, si.wavelengths)
+
+
+def visibility(ctx, ray, active):
+    """The transmittance along the shadow ray ``ray`` (a Spectrum: 1 where nothing blocks it,
+    0 where something does or the lane is not ``active``), counted in the statistics (blocked
+    shadow rays)."""
+    blocked = ctx.scene.ray_test(ray, active)
+    if ctx.stats is not None:
+        ctx.stats.shadow(active, blocked)
+    return mi.Spectrum(dr.select(active & ~blocked, 1.0, 0.0))
+
+
+def visible(tr):
+    """The lanes a transmittance lets through."""
+    return dr.max(tr) > 0
