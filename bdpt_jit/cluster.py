@@ -183,7 +183,7 @@ def develop_sum(scene, cam, lt, aov_names, light_scale):
 
 
 # ----------------------------------------------------------------------------- worker
-_SCENE_CACHE = {}               # (job token, variant) -> scene: later chunks of a job on this process
+_SCENE_CACHE = {}               # (job token, variant) -> (scene, path): later chunks of a job on this process
 
 
 def worker_variant(variant, gpu):
@@ -264,7 +264,8 @@ def _unpacked_folder(job):
 
 
 def _worker_scene(job, variant):
-    """The scene on this worker (cached for the job's later chunks); returns (scene, load s)."""
+    """The scene on this worker (cached for the job's later chunks); returns ((scene, the path
+    it was loaded from), load seconds)."""
     key = (job.token, variant)
     if key in _SCENE_CACHE:
         return _SCENE_CACHE[key], 0.0
@@ -280,8 +281,8 @@ def _worker_scene(job, variant):
     except CLIError as e:
         raise ChunkFailed(str(e)) from None
     _SCENE_CACHE.clear()
-    _SCENE_CACHE[key] = scene
-    return scene, time.perf_counter() - t0
+    _SCENE_CACHE[key] = (scene, path)
+    return (scene, path), time.perf_counter() - t0
 
 
 def _integrator(job, scene):
@@ -299,7 +300,7 @@ def run_chunk(job, chunk):
     variant = _start_worker(job, gpu)
     if job.hook is not None:
         job.hook(chunk.index, attempt)
-    scene, load_s = _worker_scene(job, variant)
+    (scene, scene_path), load_s = _worker_scene(job, variant)
     from .cli.rendering import KernelCounter
     import numpy as np
     kernels = KernelCounter()
@@ -321,7 +322,7 @@ def run_chunk(job, chunk):
         kernels.stop()
     out.update(index=chunk.index, samples=chunk.samples, attempt=attempt, node=node, pid=os.getpid(),
                variant=variant, load_s=load_s, render_s=time.perf_counter() - t1,
-               task_s=time.perf_counter() - t0, compile_s=kernels.compile_ms / 1000,
+               task_s=time.perf_counter() - t0, compile_s=kernels.compile_ms / 1000, scene_path=scene_path,
                kernels=kernels.launched, kernels_compiled=kernels.compiled,
                passes=chunk.end_pass - chunk.first_pass if job.bdpt else 1)
     return out
