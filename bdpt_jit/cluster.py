@@ -343,6 +343,8 @@ class ChunkSum:
         self.samples = 0
         self.aov_names = []
         self.info = {}
+        self.keep_images = False    # render_seeded: each chunk's image kept apart
+        self.images = {}
 
     def add(self, r):
         if r['index'] in self.done:
@@ -351,6 +353,8 @@ class ChunkSum:
         self.done[r['index']] = r
         self.samples += r['samples']
         if 'image' in arrays:
+            if self.keep_images:
+                self.images[r['index']] = arrays['image']
             self.image = _add(self.image, arrays['image'].astype('float64') * (r['samples'] / self.job.n_pixels))
             return True
         self.cam = _add(self.cam, arrays['cam'])
@@ -712,6 +716,30 @@ def render_file(scene_file, spp, integrator=None, seed=0, defines=None, options=
             ray.shutdown()
 
 
+def render_seeded(scene_file, defines, props, spp, seeds, options=None):
+    """Independent renders on the cluster, one task each: ``mi.render(scene, integrator,
+    spp, seed)`` for each of ``seeds`` (``props``: the integrator's properties; bdpt then
+    runs its own pass loop), so that each image is the one the same call gives in one process
+    (references of independent batches: benchmarks/compare.py --cluster). Returns the images
+    (HxWxC arrays) in the order of ``seeds``. The connection stays open for later calls
+    (``ray.shutdown()`` ends it; Ray ends it at exit)."""
+    import mitsuba as mi
+    options = dataclasses.replace(options or Options())
+    scene = driver_scene(scene_file, dict(defines or {}), props['type'])
+    crop = scene.sensors()[0].film().crop_size()
+    n_pixels = int(crop[0]) * int(crop[1])
+    job = Job(os.path.abspath(scene_file), dict(defines or {}), dict(props), props['type'], spp, 0, mi.variant(),
+              n_pixels, False, hook=options.hook)
+    chunks = [Chunk(k, spp * n_pixels, spp=spp, seed=int(seed)) for k, seed in enumerate(seeds)]
+    ray, _ = connect(options)
+    if options.ship_files:
+        job.files = [ray.put(pack_folder(os.path.dirname(job.scene_file)))]
+    run = ClusterRun(ray, job, chunks, options, cluster_slots(ray, options))
+    run.total.keep_images = True
+    run.run()
+    return [run.total.images[k] for k in range(len(chunks))]
+
+
 # ----------------------------------------------------------------------------- the command
 def node_report(outcome):
     """Per node: {address: {variant, chunks, samples, busy_s, msamples_per_s}}: samples per
@@ -751,7 +779,8 @@ def cli_statistics(outcome, options, slots):
              'cluster.chunk_render_s': f"{ov['render_s']:.3f}"}
     retried = (f"; chunk{'s' if len(outcome.retried) > 1 else ''} {', '.join(map(str, outcome.retried))} "
                f"retried (worker died)" if outcome.retried else '; no chunk retried')
-    lines = [f"  cluster         {len(outcome.chunks)} of {planned} chunks of {options.chunk_spp} spp on "
+    count = f"{len(outcome.chunks)} chunks" if outcome.planned is None else f"{len(outcome.chunks)} of {planned} chunks"
+    lines = [f"  cluster         {count} of {options.chunk_spp} spp on "
              f"{len(nodes)} node{'s' if len(nodes) != 1 else ''} ({options.address}), {slots[1]} CPU and "
              f"{slots[0]} GPU slots{retried}",
              f"  per chunk       scene load {ov['load_s']:.3f} s, JIT compile {ov['compile_s']:.3f} s, render "

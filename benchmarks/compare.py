@@ -95,6 +95,9 @@ def build_parser():
     ap.add_argument('--denoise', action='store_true',
                     help='also denoise each contestant\'s equal-time image (Open Image Denoise, albedo and normal from '
                          'a feature pass) and report its relMSE and FLIP (needs pip install -e \'.[denoise]\')')
+    ap.add_argument('--cluster', metavar='auto|local|ADDRESS',
+                    help='render the references\' batches on a Ray cluster, one task each (bdpt_jit.cluster: \'local\' '
+                         'starts one for this machine, \'auto\' joins the running one; docs/cluster.md); the same images')
     g = ap.add_argument_group('overrides of the mode\'s settings')
     g.add_argument('--res', type=int)
     g.add_argument('--budgets', type=float, nargs='+', help='time budgets in seconds, increasing')
@@ -128,6 +131,7 @@ def settings_of(ap, args):
     if args.probe_spp:
         s.probe_spp = tuple(args.probe_spp)
     s.denoise = bool(args.denoise)
+    s.cluster = args.cluster
     if list(s.budgets) != sorted(s.budgets) or min(s.budgets) <= 0:
         ap.error('--budgets must be positive and increasing')
     if s.repeats < 1 or s.ref_batches < 2 or s.pilot_batches < 2 or s.ref06_batches < 2 or s.res < 4:

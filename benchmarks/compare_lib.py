@@ -197,6 +197,7 @@ class Settings:
     ref06_spp: int = 256    # Mitsuba 0.6's reference: ref06_batches renders of its bdpt at this spp
     ref06_batches: int = 8
     denoise: bool = False   # also denoise each contestant's equal-time image (--denoise)
+    cluster: str = None     # references' batches on a Ray cluster (--cluster: bdpt_jit.cluster), else here
 
 
 MODES = {
@@ -263,15 +264,19 @@ def to_np(img):
 def load_scene(spec, res):
     """The scene at res x res with Mitsuba's `path` as its integrator, passing only the parameters the
     file takes (`res`, or `resx` and `resy`; `max_depth`; `integrator`)."""
-    names = scene_parameters(spec.path)
-    kw = {k: v for k, v in (('res', res), ('resx', res), ('resy', res), ('max_depth', spec.max_depth),
-                            ('integrator', 'path')) if k in names}
-    scene = mi.load_file(str(spec.path), **kw)
+    scene = mi.load_file(str(spec.path), **scene_kwargs(spec, res))
     size = [int(v) for v in scene.sensors()[0].film().crop_size()]
     if size != [res, res]:
         raise ValueError(f'{spec.path}: its film is {size[0]}x{size[1]}, not {res}x{res}: the file must take '
                          f'a $res parameter, or $resx and $resy, for its width and height')
     return scene
+
+
+def scene_kwargs(spec, res):
+    """The parameters load_scene passes (those the file takes), as strings."""
+    names = scene_parameters(spec.path)
+    return {k: str(v) for k, v in (('res', res), ('resx', res), ('resy', res), ('max_depth', spec.max_depth),
+                                   ('integrator', 'path')) if k in names}
 
 
 def make_integrator(contestant, max_depth, **extra):
@@ -301,11 +306,12 @@ def footprint_mask(scene, probes=8):
     return ~dil
 
 
-def render_batches(scene, integrator, spp, batches, seed0):
-    """Mean and variance of the mean per pixel from independent batches (running sums)."""
+def render_batches(scene, integrator, spp, batches, seed0, images=None):
+    """Mean and variance of the mean per pixel from independent batches (running sums); ``images``:
+    the same batches rendered elsewhere (--cluster), in seed order."""
     s1 = s2 = None
     for b in range(batches):
-        a = to_np(mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + b))
+        a = to_np(images[b] if images is not None else mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + b))
         s1 = a if s1 is None else s1 + a
         s2 = a * a if s2 is None else s2 + a * a
     mean = s1 / batches
@@ -347,18 +353,33 @@ def reference_key(spec, s):
     return hashlib.sha1(repr(parts).encode()).hexdigest()[:16]
 
 
+def reference_batches(spec, scene, s, props, spp, batches, seed0):
+    """render_batches of the integrator ``props``; with --cluster each batch is one task on the cluster
+    (the same mi.render call, so the same images as here)."""
+    images = None
+    if s.cluster:
+        from bdpt_jit import cluster
+        seeds = [seed0 + b for b in range(batches)]
+        try:
+            images = cluster.render_seeded(str(spec.path), scene_kwargs(spec, s.res), props, spp, seeds,
+                                           cluster.Options(address=s.cluster))
+        except cluster.ClusterError as e:
+            sys.exit(f'compare.py: --cluster: {e}')
+    return render_batches(scene, mi.load_dict(props), spp, batches, seed0, images)
+
+
 def render_reference_parts(spec, scene, s):
     """The renders a reference is combined from (cached as they are, combined on loading)."""
     parts = {}
-    pt = mi.load_dict({'type': 'ptracer', 'max_depth': spec.max_depth})
+    pt = {'type': 'ptracer', 'max_depth': spec.max_depth}
     spp = s.ref_spp * spec.ref_scale
-    parts['m_pt'], parts['v_pt'] = render_batches(scene, pt, spp, s.ref_batches, SEED_REF)
+    parts['m_pt'], parts['v_pt'] = reference_batches(spec, scene, s, pt, spp, s.ref_batches, SEED_REF)
     parts['mask'] = footprint_mask(scene)
     if spec.reference == 'mixed':
-        pa = mi.load_dict({'type': 'path', 'max_depth': spec.max_depth})
-        parts['m_path'], parts['v_path'] = render_batches(scene, pa, spp, s.ref_batches, SEED_REF + 1000)
-        _, parts['pv_pt'] = render_batches(scene, pt, s.pilot_spp, s.pilot_batches, SEED_PILOT)
-        _, parts['pv_path'] = render_batches(scene, pa, s.pilot_spp, s.pilot_batches, SEED_PILOT + 1000)
+        pa = {'type': 'path', 'max_depth': spec.max_depth}
+        parts['m_path'], parts['v_path'] = reference_batches(spec, scene, s, pa, spp, s.ref_batches, SEED_REF + 1000)
+        _, parts['pv_pt'] = reference_batches(spec, scene, s, pt, s.pilot_spp, s.pilot_batches, SEED_PILOT)
+        _, parts['pv_path'] = reference_batches(spec, scene, s, pa, s.pilot_spp, s.pilot_batches, SEED_PILOT + 1000)
     meta = {'kind': spec.reference, 'spp_ptracer': spp * s.ref_batches, 'batches': s.ref_batches,
             'spp_path': spp * s.ref_batches if spec.reference == 'mixed' else 0,
             'pilot': f'{s.pilot_batches} x {s.pilot_spp} spp each', 'res': s.res, 'max_depth': spec.max_depth}
