@@ -186,6 +186,30 @@ def test_albedo_behind_glass_is_the_floor():
     np.testing.assert_allclose(normal, np.broadcast_to([0, 1, 0], normal.shape), atol=1e-3)
 
 
+SPECTRAL_FEATURES = """
+import sys
+import mitsuba as mi
+mi.set_variant('llvm_ad_spectral')
+sys.path.insert(0, {tests!r})
+from test_denoise import glass_slab_scene
+from bdpt_jit.denoise import feature_images
+albedo, normal = feature_images(glass_slab_scene(), spp=16)
+print(*albedo.mean(axis=(0, 1)), *normal.mean(axis=(0, 1)))
+"""
+
+
+def test_spectral_albedo_is_the_srgb_reflectance():
+    """In a spectral variant the floor's sRGB reflectance comes back as itself (it is converted
+    under D65, the white of RGB emitters; converted alone, sRGB (0.2, 0.5, 0.8) would give
+    (0.27, 0.47, 0.74)). The image mean, as each sample sees 4 wavelengths (noisy per pixel)."""
+    r = subprocess.run([sys.executable, '-c', SPECTRAL_FEATURES.format(tests=os.path.dirname(__file__))],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    values = [float(v) for v in r.stdout.split()]
+    np.testing.assert_allclose(values[:3], [0.2, 0.5, 0.8], rtol=0.01)
+    np.testing.assert_allclose(values[3:], [0, 1, 0], atol=1e-3)
+
+
 # ----------------------------------------------------------------------------- with the command's options
 @pytest.mark.parametrize('budget', [['--spp', '8'], ['--time', '60', '--pass-spp', '1']], ids=['spp', 'time'])
 def test_interrupted_render_is_denoised_and_strategy_layers_stay_raw(tmp_path, monkeypatch, budget):

@@ -42,7 +42,12 @@ class DenoiseStep:
         sensor = scene.sensors()[0]
         t0 = time.perf_counter()
         spp_f = feature_spp(spp)
-        albedo, normal = feature_images(scene, sensor, spp=spp_f, seed=seed)
+        try:
+            albedo, normal = feature_images(scene, sensor, spp=spp_f, seed=seed)
+        except Exception as e:                  # the render is kept whatever goes wrong here
+            self.error = f"the feature pass failed: {backends.first_line(e)}"
+            self.stats = {'denoise.error': self.error}
+            return {}, colour
         t1 = time.perf_counter()
         try:
             den, settings = denoise_with_settings(colour, albedo, normal, backend=self.backend,

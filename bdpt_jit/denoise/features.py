@@ -7,7 +7,7 @@ into an image block of their own, normalised by the filter weights: the features
 over each pixel's samples as the image is. Each ray follows delta (specular) surfaces, mirrors,
 glass and null interfaces, until it reaches a surface with a smooth (non-delta) lobe, leaves the
 scene or passes ``max_depth`` vertices: that vertex's diffuse reflectance (as Mitsuba's ``aov``
-integrator computes its ``albedo``) and shading normal (world space) are the features, as
+integrator computes its ``albedo``; spectral variants: under D65) and shading normal (world space) are the features, as
 Intel Open Image Denoise's documentation asks for surfaces seen through mirrors and glass.
 
 At a delta vertex the ray takes the transmitted direction where the BSDF has one (so a surface
@@ -73,14 +73,18 @@ def _camera_rays(sensor, sampler, n, spp):
     return pos + mi.ScalarVector2f(film.crop_offset()), mi.Ray3f(ray)
 
 
-def _to_colour(value, wavelengths, active):
-    """A BSDF's or emitter's spectrum as the film's colour: RGB (3 Floats) or mono (1), as the
-    ``aov`` integrator converts an albedo (spectral: divided by the sensor's wavelength density)."""
+def _to_colour(value, wavelengths, active, reflectance=True):
+    """A BSDF's reflectance (or an emitter's radiance) as the film's colour: RGB (3 Floats) or
+    mono (1). Spectral variants: divided by the sensor's wavelength density, as the ``aov``
+    integrator converts an albedo, and a reflectance lit by D65 (the white of Mitsuba's RGB
+    emitters), whose sRGB is (1, 1, 1): so that an sRGB reflectance comes back as itself."""
     if mi.is_monochromatic:
         return [value[0]]
     if mi.is_spectral:
         pdf = mi.pdf_rgb_spectrum(wavelengths)
         value = value * dr.select(pdf != 0, dr.rcp(pdf), 0.0)
+        if reflectance:
+            value = value * mi.Spectrum([mi.cie_d65(wavelengths[i]) for i in range(dr.size_v(mi.Spectrum))])
         rgb = mi.spectrum_to_srgb(mi.UnpolarizedSpectrum(value), wavelengths, active)
         return [rgb[0], rgb[1], rgb[2]]
     return [value[0], value[1], value[2]]
@@ -129,7 +133,7 @@ def _step(scene, sampler, ray, active, depth, max_depth, albedo, normal):
     if env is not None:
         si_env = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray.o))
         si_env.wi, si_env.wavelengths, si_env.time = -ray.d, ray.wavelengths, ray.time
-        sky = _to_colour(mi.UnpolarizedSpectrum(env.eval(si_env, miss)), ray.wavelengths, miss)
+        sky = _to_colour(mi.UnpolarizedSpectrum(env.eval(si_env, miss)), ray.wavelengths, miss, False)
         value = [dr.select(miss, s, v) for s, v in zip(sky, value)]
     d, ok = _follow_delta(bsdf, si, sampler, delta & (depth + 1 < max_depth))
     give_up = delta & ~ok
