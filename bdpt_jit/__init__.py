@@ -38,8 +38,8 @@ mi = _mi
 
 # the kernels' modules, in import order: they hold the active variant's types (contexts,
 # record layouts, the plugin's base class), and are imported again when the variant changes
-_KERNEL_MODULES = ('jitmath', 'rays', 'strategies', 'cameras', 'direct', 'endpoints', 'connect', 'vertex',
-                   'store', 'film', 'stats', 'roulette', 'mis', 'passes', 'scene_check', 'gradients', 'transport',
+_KERNEL_MODULES = ('jitmath', 'rays', 'strategies', 'cameras', 'direct', 'emitter_tables', 'endpoints', 'connect', 'vertex',
+                   'store', 'film', 'stats', 'roulette', 'mis', 'passes', 'scene_check', 'sampling', 'gradients', 'transport',
                    'context', 'merge', 'light_path', 'camera_path', 'integrator')
 _loaded_variant = None
 

@@ -17,10 +17,10 @@ iterations, and the temporaries of each strategy stay inside its function."""
 import drjit as dr
 import mitsuba as mi
 
-from . import gradients, transport
+from . import transport
 from .endpoints import AreaKinds
 from .jitmath import pdf_w_to_a, safe_div
-from .mis import MISState
+from .mis import EmitterDensities, MISState
 from .transport import Subpath
 from .vertex import IMPORTANCE, RADIANCE, Vertex, visibility, visible
 
@@ -119,7 +119,7 @@ class CameraTracer:
         ``v`` is a strategy, mis.MIS.merge_here_camera)."""
         c = self.ctx
         si = v.si
-        ds, em_w = gradients.sample_direct(c, si, self.ps.sampler.next_2d(), active)
+        ds, em_w = c.sampling.sample_direct(si, self.ps.sampler.next_2d(), active)
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
@@ -129,8 +129,8 @@ class CameraTracer:
         k = c.emitters.kinds(ds.emitter)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
         pdf_direct_w, cos_e = c.emitters.direct_terms(ds, k)
-        w = self.mis.weight_s1(sub.mis.d_vcm, sub.mis.d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e,
-                               v.cos(ds.d), pdf_rev_w, emitter_is_delta=k.delta, merge_z=merge_z)
+        w = self.mis.weight_s1(sub.mis, pdf_bsdf_w, pdf_rev_w, v.cos(ds.d),
+                               EmitterDensities(pdf_direct_w, pdf_emit_w, cos_e, k.delta), merge_z)
         value = sub.beta * f * tr * em_w
         self.add_layer(1, sub.depth + 1, value, w, active)
         return dr.select(active, value * w, 0.0)
@@ -157,7 +157,7 @@ class CameraTracer:
         ok &= visible(tr)
         contrib = contrib * tr
         w = self.mis.weight_connect(
-            rec.d_vcm, rec.d_vc, sub.mis.d_vcm, sub.mis.d_vc,
+            rec, sub.mis,
             pdf_w_to_a(pdf_c_w, dr.dot(y.si.n, d), dist2),
             pdf_w_to_a(pdf_l_w, dr.dot(si.n, d), dist2),
             pdf_l_rev_w, pdf_c_rev_w, merge_z)
@@ -185,7 +185,7 @@ class CameraTracer:
         c = self.ctx
         n, max_edges = self.ps.n, c.max_depth_edges
         film_pos, ray, beta = self.primary()
-        si = gradients.intersect(c, ray, True, primary=True)     # in solid angle: no edge factor
+        si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         self.film_pos = film_pos

@@ -13,10 +13,12 @@ from .cameras import camera_for
 from .connect import DiffuseTable
 from .endpoints import EmitterTable
 from .film import FilmAccumulator, StrategyLayers
+from .gradients import ADSampling
 from .mis import MIS
 from .params import ParameterError, aov_channel_names, parse_aovs
 from .passes import UNBOUNDED
 from .rays import RayOffsets
+from .sampling import Sampling
 from .scene_check import VertexNeeds, has_instances, scene_has_delta_bsdf, scene_perturbs_normals
 from .stats import RayStats
 from .store import record_type
@@ -63,10 +65,12 @@ class Context:
     layers             film.StrategyLayers, or None (parameter strategy_images)
     stats              stats.RayStats, or None (parameter statistics)
     ad                 a differentiable pass (gradients.py): detached sampling, values with derivatives
+    ad_geometry        the gradient-enabled shape parameters of a differentiable pass (their keys)
+    sampling           sampling.Sampling, or gradients.ADSampling in a differentiable pass
     aovs, aov_names    the AOVs asked for (params.parse_aovs) and their film channels
     """
 
-    def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=False):
+    def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=()):
         self.scene, self.sensor = scene, sensor
         self.camera = camera_for(sensor)
         self.offsets = RayOffsets(scene)
@@ -82,6 +86,7 @@ class Context:
         self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
                                                 self.camera, self.hide_emitters)
         self.ad = ad
+        self.ad_geometry = tuple(ad_geometry)
         if ad_geometry:
             # derivatives with respect to geometry: light-tracing splats land where their vertex
             # projects, and moving geometry moves them across pixels (a boundary term bdpt does
@@ -111,6 +116,7 @@ class Context:
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
         self.stats = RayStats() if settings['statistics'] else None
+        self.sampling = ADSampling(self) if ad else Sampling(self)
         self.evaluate_tables()
 
     def evaluate_tables(self):

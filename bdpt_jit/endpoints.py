@@ -22,7 +22,6 @@ All selection probabilities are Mitsuba's own (``scene.sample_emitter``, proport
 emitter's ``sampling_weight``)."""
 
 import math
-import re
 
 import drjit as dr
 import mitsuba as mi
@@ -32,6 +31,8 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
+from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_table,  # noqa: F401
+                             spot_cones)     # (projector_cone: re-exported)
 
 
 def _or(a, b):
@@ -43,22 +44,6 @@ def _or(a, b):
     if a is True or b is True:
         return True
     return a | b
-
-
-def emitter_kinds(flags) -> set:
-    """The kinds (Kinds' names) of one emitter, from its flags (Python ints)."""
-    f = mi.EmitterFlags
-    surface, ddir = mi.has_flag(flags, f.Surface), mi.has_flag(flags, f.DeltaDirection)
-    kinds = set()
-    if surface:
-        kinds.add('dir_area' if ddir else 'area')
-    if mi.has_flag(flags, f.DeltaPosition):
-        kinds.add('delta_pos')
-    if ddir and not surface:
-        kinds.add('delta_dir')
-    if mi.has_flag(flags, f.Infinite):
-        kinds.add('infinite')
-    return kinds
 
 
 class Kinds:
@@ -129,45 +114,13 @@ class EmitterTable(DirectSampling):
         self.center = mi.Point3f(bs.center)
         self.radius = r * 1.01 + 1e-4
         self.pdf_disk = 1.0 / (math.pi * self.radius ** 2)
-        # spot cones, by the emitter's registry id (points: the whole sphere, cos = -1)
+        # per-emitter tables, indexed by the emitter's registry id (emitter_tables.py)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0]) for e in emitters]
         size = max(ids + [0]) + 1
-        cos_cut, axis = [-1.0] * size, [[0.0, 0.0, 1.0] for _ in range(size)]
-        for e, i in zip(emitters, ids):
-            if e.class_name() == 'SpotLight':
-                params = mi.traverse(e)
-                cos_cut[i] = math.cos(math.radians(float(dr.ravel(params['cutoff_angle']).numpy()[0])))
-                m = np.array(e.world_transform().matrix).reshape(4, 4)
-                a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
-                axis[i] = [float(a[0]), float(a[1]), float(a[2])]
-            elif e.class_name() == 'Projector':
-                cos_cut[i], axis[i] = projector_cone(e)
-        self.cone_cos = mi.Float(cos_cut)
-        self.cone_axis = mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
-        # sphere emitters (centre, radius; radius 0 for every other emitter): emitter sampling
-        # of spheres that look small from the reference point is done here (sample_direct)
-        sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
-        for e, i in zip(emitters, ids):
-            shape = e.get_shape()
-            # (a textured sphere keeps Mitsuba's sampling: by the texture, no cone involved)
-            if shape is not None and shape.class_name() == 'Sphere' and emitter_kinds(e.flags()) == {'area'} \
-                    and not mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying):
-                m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
-                sph_r[i] = float(np.linalg.norm(m[:3, 0]))
-                sph_c[i] = [float(x) for x in m[:3, 3]]
-        self.has_sphere = any(r > 0 for r in sph_r)
-        # 1 / area of each area emitter's shape: Mitsuba's uniform position density (read from this
-        # table, not through a shape call: a virtual call on shapes reaches instances, whose
-        # pdf_position raises, in scenes that have any)
-        inv_area = [0.0] * size
-        for e, i in zip(emitters, ids):
-            shape = e.get_shape()
-            if shape is not None:
-                area = float(dr.ravel(shape.surface_area()).numpy()[0])
-                inv_area[i] = 1.0 / area if area > 0 else 0.0
-        self.inv_area = mi.Float(inv_area)
-        self.sph_r = mi.Float(sph_r)
-        self.sph_c = mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
+        self.cone_cos, self.cone_axis = spot_cones(emitters, ids, size)
+        self.sph_r, self.sph_c = sphere_table(emitters, ids, size)
+        self.has_sphere = bool(np.any(np.array(self.sph_r) > 0))
+        self.inv_area = inverse_areas(emitters, ids, size)
 
     def kinds(self, emitter):
         return Kinds(self, emitter)
@@ -222,7 +175,7 @@ class EmitterTable(DirectSampling):
     def sample_emission(self, time, u_sel, u_pos, u_dir, active, wavelengths=None):
         """Start a light subpath: choose an emitter, a position and a direction. Returns an
         Emission with the ray, the throughput after emission and the densities. ``wavelengths``:
-        the sample's (spectral variants: the camera subpath's, passes.sample_wavelengths)."""
+        the sample's (spectral variants: the camera subpath's, integrator.BDPTIntegrator.pass_state)."""
         wl = wavelengths if wavelengths is not None else no_wavelengths()
         idx, _, _ = self.scene.sample_emitter(u_sel, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), idx, active)
@@ -405,53 +358,6 @@ class EmitterTable(DirectSampling):
             it = dr.zeros(mi.Interaction3f, dr.width(d_out))
             out = sel(k.env, self.pdf_disk * emitter.pdf_direction(it, ds_env, k.env), out)
         return p_sel * out
-
-
-def projector_cone(emitter):
-    """(cos of the half angle, unit axis) of a circular cone around a ``projector``'s frustum:
-    light subpaths sample their directions uniformly in it (directions outside the frustum get
-    no intensity from Mitsuba's ``sample_direction``), and the densities use the same cone.
-    The frustum is Mitsuba's: x_fov (from the emitter's description: Mitsuba exposes no
-    accessor) and the texture's aspect, image plane at z = 1 of the emitter's to_world,
-    half-extents tan(x_fov / 2) and that over the aspect. The corners' directions bound it (a
-    circular cone containing the four edges contains their convex hull); the cone is widened
-    by 1e-3 of its angle, and checked against the directions of Mitsuba's own ``sample_ray``."""
-    from .scene_check import UnsupportedSceneError
-    match = re.search(r'x_fov = ([0-9.eE+-]+)', str(emitter))
-    if match is None:
-        raise UnsupportedSceneError("bdpt: cannot read the field of view of the projector emitter "
-                                    "(Mitsuba's description of it has no x_fov)")
-    tan_x = math.tan(math.radians(float(match.group(1))) / 2)
-    params = mi.traverse(emitter)
-    aspect = 1.0
-    if 'irradiance.data' in params.keys():
-        h, w = np.array(params['irradiance.data']).shape[:2]
-        aspect = w / h
-    tan_y = tan_x / aspect
-    m = np.array(emitter.world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
-    axis = m @ np.array([0.0, 0.0, 1.0])
-    axis /= np.linalg.norm(axis)
-    cos_min = 1.0
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            c = m @ np.array([sx * tan_x, sy * tan_y, 1.0])
-            cos_min = min(cos_min, float(np.dot(axis, c / np.linalg.norm(c))))
-    angle = math.acos(max(-1.0, min(1.0, cos_min))) * (1 + 1e-3) + 1e-6
-    if angle >= math.pi / 2:
-        raise UnsupportedSceneError("bdpt: a projector emitter wider than a hemisphere is not supported")
-    cos_cut = math.cos(angle)
-    # Mitsuba's own emitted directions must lie in the cone (a check of the frustum read above)
-    n = 4096
-    rng = np.random.default_rng(0)
-    u = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
-    ray, w = emitter.sample_ray(0.0, 0.5, u, u, True)
-    d = np.array(ray.d, dtype=np.float64)
-    d = d / np.linalg.norm(d, axis=0, keepdims=True)          # (3, n)
-    lit = np.broadcast_to(np.array(dr.max(w), dtype=np.float64).reshape(-1) > 0, (n,))
-    if np.any((axis @ d)[lit] < cos_cut):
-        raise UnsupportedSceneError("bdpt: the projector emitter's frustum could not be bounded "
-                                    "(its emitted directions leave the cone computed from its field of view)")
-    return cos_cut, [float(axis[0]), float(axis[1]), float(axis[2])]
 
 
 class EmissionStart:

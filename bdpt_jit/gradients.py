@@ -52,6 +52,7 @@ import mitsuba as mi
 from . import connect
 from .jitmath import safe_div, sel
 from .rays import spawn
+from .sampling import Sampling
 
 # parameter keys whose derivative bdpt does not compute (see the module docstring)
 _REFUSED_LEAVES = ('position', 'direction', 'x_fov', 'focus_distance', 'aperture_radius', 'center', 'radius')
@@ -72,7 +73,7 @@ def _grad_enabled_keys(params):
     return out
 
 
-def check_parameters(params, scene=None, has_delta=False):
+def check_parameters(params, scene=None):
     """Refuse gradient-enabled parameters whose derivative bdpt does not compute."""
     if params is None:
         return
@@ -95,23 +96,12 @@ def check_parameters(params, scene=None, has_delta=False):
                 "radiance, intensity, irradiance, environment texels) and shape vertex positions "
                 "(interior derivatives: silhouettes are not handled; in scenes with delta BSDFs with "
                 "technique 'pt' only)")
-    if scene is not None:
-        _GEOMETRY[id(scene)] = (tuple(geometry_keys(params)), bool(has_delta))
-
-
-# id(scene) -> (the gradient-enabled geometry keys, the scene has delta BSDFs), recorded by
-# check_parameters at the start of every differentiable render (integrator.differentiable_passes)
-_GEOMETRY = {}
-
-
-def _geometry(c):
-    return _GEOMETRY.get(id(c.scene), ((), False))[0] if c.ad else ()
 
 
 def slides_after_delta(c):
     """A differentiable pass with respect to geometry in a scene with delta BSDFs: the vertex
     after a delta vertex is a ray intersection, not a material point (``edge_ratio``)."""
-    return c.ad and c.has_delta and bool(_geometry(c))
+    return c.ad and c.has_delta and bool(c.ad_geometry)
 
 
 def check_technique(c):
@@ -120,7 +110,7 @@ def check_technique(c):
     mis.MIS.camera_chains): refuse the others (called when a pass starts tracing)."""
     if not slides_after_delta(c) or c.strategies.technique in ('pt', 'bdpt'):
         return
-    key = _geometry(c)[0]
+    key = c.ad_geometry[0]
     raise NotImplementedError(
         f"bdpt: gradients with respect to '{key}' are not supported with technique "
         f"'{c.strategies.technique}' in a scene with delta (specular) BSDFs: a specular chain pins the "
@@ -149,29 +139,6 @@ def _delta_emitters(scene):
                for e in scene.emitters())
 
 
-def intersect(c, ray, active, primary=False):
-    """scene.ray_intersect; in a differentiable pass the hit is a material point of its shape
-    (RayFlags.FollowShape): it moves with the shape's parameters. A camera ray's first hit
-    slides along its ray instead (``primary``): a pixel sees through a fixed footprint of
-    directions, so its first vertex is parametrised by the direction (solid angle). Hits on
-    triangle meshes are moved onto their triangle's plane (rays.RayOffsets.project_to_triangle)."""
-    if primary:
-        check_technique(c)
-    if not c.ad or primary:
-        si = c.scene.ray_intersect(ray, active)
-    else:
-        si = c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
-    return c.offsets.project_to_triangle(si, active)      # rays.py: the mesh error bound assumes it
-
-
-def attach_wi(c, si, prev_p):
-    """In a differentiable pass: the incoming direction of ``si`` from the previous vertex's
-    position, both with derivatives (si.wi from the traced ray has none)."""
-    if c.ad:
-        si.wi = si.to_local(dr.normalize(prev_p - si.p))
-    return si
-
-
 def ratio(x):
     """1 in value, with the derivative of x / detach(x): the factor x of a throughput whose
     value is already in it, differentiated (0 derivative where x is 0)."""
@@ -179,33 +146,6 @@ def ratio(x):
     ok = (d != 0) & dr.isfinite(d)            # an overflowed factor (vertices ~1e-19 apart): no derivative
     q = dr.select(ok, x / dr.select(ok, d, 1.0), 0.0)
     return type(x)(dr.replace_grad(dr.ones(type(x), dr.width(x)), q))   # (keeps mi.Spectrum's type)
-
-
-def edge_ratio(c, camera_side, si, bsdf, si_next, d_escape, u, is_delta, active):
-    """The edge from the vertex ``si`` (its wi attached) to the next vertex ``si_next``
-    (``d_escape``: the sampled direction, for lanes that left the scene): [f G]_ad / detach.
-    Delta lobes: the gradient of the sampled weight (``u``: the lobe and direction samples)."""
-    if not c.ad:
-        return 1.0
-    hit = active & si_next.is_valid()
-    to_next = si_next.p - si.p
-    dist2 = dr.squared_norm(to_next)
-    w = dr.select(hit, to_next * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0)), d_escape)
-    if camera_side:
-        f, _, _ = connect.eval_camera_vertex(si, bsdf, w, active, None)
-    else:
-        f, _, _, _ = connect.eval_light_vertex(si, bsdf, w, active, c.exact_adjoint, None)
-    g = dr.select(hit, dr.abs(dr.dot(si_next.n, w)) * safe_div(1.0, dist2), 1.0)
-    out = ratio(f * g)
-    if is_delta is not None:
-        mode = connect.CTX_RADIANCE if camera_side else connect.CTX_IMPORTANCE
-        bs, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
-        out = dr.select(is_delta, ratio(w_delta), out)
-        if slides_after_delta(c):
-            wo = si.to_world(bs.wo)                   # with derivatives: si's position, frame and wi
-            slide(c, si, si_next, wo, active & is_delta & hit)
-            out = out * env_direction_ratio(c, si, wo, active & is_delta & ~hit)
-    return mi.Spectrum(dr.select(active, out, 1.0))
 
 
 _SLIDING = ('p', 'n', 'uv', 't', 'dp_du', 'dp_dv', 'dn_du', 'dn_dv')
@@ -247,69 +187,10 @@ def env_direction_ratio(c, si, wo, active):
     return type(q)(dr.replace_grad(dr.ones(type(q), dr.width(q)), q))
 
 
-def sample_bsdf(c, bsdf, mode, si, u1, u2, active):
-    """connect.sample_bsdf; in a differentiable pass without derivatives (the edge's
-    derivative comes with ``edge_ratio`` once the next vertex is known)."""
-    if not c.ad:
-        return connect.sample_bsdf(bsdf, mode, si, u1, u2, active, c.diffuse)
-    with dr.suspend_grad():
-        return connect.sample_bsdf(bsdf, mode, si, u1, u2, active, c.diffuse)
-
-
-def sample_direct(c, si, u, active):
-    """EmitterTable.sample_direct (s=1). In a differentiable pass the emitter point is a
-    material point (Mitsuba's sampling with derivatives), the density detached, and the weight
-    Le / pdf_w = Le |cos_y| / (d^2 pdf_a) takes the derivative of Le |cos_y| / d^2 (area
-    emitters; ``eval_direction`` of a point or spot light is already I / d^2, and a directional
-    light's or an environment's value has no distance)."""
-    if not c.ad:
-        return c.emitters.sample_direct(si, u, active)
-    ds, w = c.emitters.sample_direct(si, u, active)
-    le = ds.emitter.eval_direction(si, ds, active & (ds.pdf > 0))
-    k = c.emitters.kinds(ds.emitter)
-    geo = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist)), mi.Float(1.0))
-    ds.pdf = dr.detach(ds.pdf)
-    return ds, dr.detach(w) * ratio(le * geo)
-
-
-def next_vertex(c, camera_side, si, bsdf, ray, u, is_delta, beta, active):
-    """The vertex that ``ray`` (sampled at ``si`` with the samples ``u``) finds, for both tracers:
-    returns it, the throughput (times the edge's derivative factor in a differentiable pass:
-    ``edge_ratio``, the next vertex then a material point) and the squared length of the edge
-    between the two vertices, not from the offset origin (rays.py: at grazing angles they differ
-    by far more than rounding, and every density would follow t)."""
-    si_next = intersect(c, ray, active)
-    if c.ad:
-        beta = beta * edge_ratio(c, camera_side, si, bsdf, si_next, ray.d, u, is_delta, active)
-        si_next = attach_wi(c, si_next, si.p)
-    return si_next, beta, dr.squared_norm(si_next.p - si.p)
-
-
-def sample_emission(c, time, u_sel, u_pos, u_dir, active, wavelengths=None):
-    """EmitterTable.sample_emission. In a differentiable pass everything is sampled without
-    derivatives except the emitter point of area emitters, a material point of its shape;
-    the emitted value's derivative comes with ``emission_ratio`` at the first hit."""
-    if not c.ad:
-        return c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
-    check_technique(c)
-    with dr.suspend_grad():
-        e = c.emitters.sample_emission(time, u_sel, u_pos, u_dir, active, wavelengths)
-    if e.kinds.area is not False:
-        ps, _ = e.emitter.sample_position(time, u_pos, e.active & e.kinds.area)
-        p = sel(e.kinds.area, ps.p, e.origin)
-        n = sel(e.kinds.area, ps.n, e.n_e)
-        e.y0_p, e.y0_n = p, n
-    else:
-        e.y0_p, e.y0_n = e.origin, e.n_e
-    return e
-
-
 def emission_ratio(c, e, si1, u_dir, time, active):
     """The light subpath's first edge y0 -> y1: [Le(y0 -> y1) |cos_y0| |cos_y1| / d^2]_ad /
     detach for area emitters, [I(w) |cos_y1| / d^2] for points and spots, [Le(w) |cos_y1|]
     for environments and directional lights (y0 a direction: no distance)."""
-    if not c.ad:
-        return 1.0
     k, emitter = e.kinds, e.emitter
     to = si1.p - e.y0_p
     dist2 = dr.squared_norm(to)
@@ -347,3 +228,97 @@ def emission_ratio(c, e, si1, u_dir, time, active):
             si_env.wavelengths = si1.wavelengths
             value = sel(k.env, emitter.eval(si_env, active & k.env) * cos1, value)
     return mi.Spectrum(dr.select(active, ratio(value), 1.0))
+
+
+class ADSampling(Sampling):
+    """Sampling in a differentiable pass (module docstring): every decision detached, every
+    vertex a material point of its surface, each edge's derivative attached to the throughput."""
+
+    def intersect(self, ray, active, primary=False):
+        """The hit as a material point of its shape (RayFlags.FollowShape): it moves with the
+        shape's parameters. A camera ray's first hit (``primary``) slides along its ray instead:
+        a pixel sees through a fixed footprint of directions, so its first vertex is
+        parametrised by the direction (solid angle)."""
+        c = self.ctx
+        if primary:
+            check_technique(c)
+            return super().intersect(ray, active)
+        si = c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+        return c.offsets.project_to_triangle(si, active)      # rays.py: the mesh error bound assumes it
+
+    def sample_bsdf(self, bsdf, mode, si, u1, u2, active):
+        """Without derivatives: the edge's derivative comes with ``edge_ratio`` once the next
+        vertex is known."""
+        with dr.suspend_grad():
+            return super().sample_bsdf(bsdf, mode, si, u1, u2, active)
+
+    def sample_direct(self, si, u, active):
+        """The emitter point is a material point (Mitsuba's sampling with derivatives), the
+        density detached, and the weight Le / pdf_w = Le |cos_y| / (d^2 pdf_a) takes the
+        derivative of Le |cos_y| / d^2 (area emitters; ``eval_direction`` of a point or spot
+        light is already I / d^2, and a directional light's or an environment's value has no
+        distance)."""
+        c = self.ctx
+        ds, w = c.emitters.sample_direct(si, u, active)
+        le = ds.emitter.eval_direction(si, ds, active & (ds.pdf > 0))
+        k = c.emitters.kinds(ds.emitter)
+        geo = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist)), mi.Float(1.0))
+        ds.pdf = dr.detach(ds.pdf)
+        return ds, dr.detach(w) * ratio(le * geo)
+
+    def sample_emission(self, u_sel, u_pos, u_dir, active, wavelengths=None):
+        """Everything sampled without derivatives except the emitter point of area emitters,
+        a material point of its shape; the emitted value's derivative comes with
+        ``first_hit`` (emission_ratio)."""
+        c = self.ctx
+        check_technique(c)
+        with dr.suspend_grad():
+            e = super().sample_emission(u_sel, u_pos, u_dir, active, wavelengths)
+        if e.kinds.area is not False:
+            ps, _ = e.emitter.sample_position(c.time, u_pos, e.active & e.kinds.area)
+            e.y0_p = sel(e.kinds.area, ps.p, e.origin)
+            e.y0_n = sel(e.kinds.area, ps.n, e.n_e)
+        else:
+            e.y0_p, e.y0_n = e.origin, e.n_e
+        return e
+
+    def first_hit(self, e, si, u_dir, active):
+        c = self.ctx
+        beta = e.beta * emission_ratio(c, e, si, u_dir, c.time, active & si.is_valid())
+        # wi from the emitter point (a material point); an infinite emitter's y0 is a direction
+        si.wi = sel(e.kinds.infinite, si.wi, si.to_local(dr.normalize(e.y0_p - si.p)))
+        return beta, si
+
+    def next_vertex(self, camera_side, v, ray, u, is_delta, beta, active):
+        """The next vertex a material point, the edge's derivative factor (``edge_ratio``) in
+        the throughput, and its incident direction from ``v``'s position, both with derivatives
+        (si.wi from the traced ray has none)."""
+        si_next = self.intersect(ray, active)
+        beta = beta * self.edge_ratio(camera_side, v, si_next, ray.d, u, is_delta, active)
+        si_next.wi = si_next.to_local(dr.normalize(v.si.p - si_next.p))
+        return si_next, beta, dr.squared_norm(si_next.p - v.si.p)
+
+    def edge_ratio(self, camera_side, v, si_next, d_escape, u, is_delta, active):
+        """The edge from the vertex ``v`` (its wi attached) to the next vertex ``si_next``
+        (``d_escape``: the sampled direction, for lanes that left the scene): [f G]_ad / detach.
+        Delta lobes: the gradient of the sampled weight (``u``: the lobe and direction samples)."""
+        c, si, bsdf = self.ctx, v.si, v.bsdf
+        hit = active & si_next.is_valid()
+        to_next = si_next.p - si.p
+        dist2 = dr.squared_norm(to_next)
+        w = dr.select(hit, to_next * dr.rsqrt(dr.select(dist2 > 0, dist2, 1.0)), d_escape)
+        if camera_side:
+            f, _, _ = connect.eval_camera_vertex(si, bsdf, w, active, None)
+        else:
+            f, _, _, _ = connect.eval_light_vertex(si, bsdf, w, active, c.exact_adjoint, None)
+        g = dr.select(hit, dr.abs(dr.dot(si_next.n, w)) * safe_div(1.0, dist2), 1.0)
+        out = ratio(f * g)
+        if is_delta is not None:
+            mode = connect.CTX_RADIANCE if camera_side else connect.CTX_IMPORTANCE
+            bs, w_delta = bsdf.sample(mode, si, u[0], u[1], active & is_delta)
+            out = dr.select(is_delta, ratio(w_delta), out)
+            if slides_after_delta(c):
+                wo = si.to_world(bs.wo)                   # with derivatives: si's position, frame and wi
+                slide(c, si, si_next, wo, active & is_delta & hit)
+                out = out * env_direction_ratio(c, si, wo, active & is_delta & ~hit)
+        return mi.Spectrum(dr.select(active, out, 1.0))

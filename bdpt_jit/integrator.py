@@ -22,7 +22,7 @@ from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
                      count_passes, light_capacity, pass_seed, plan_passes)
 from .gradients import check_parameters, geometry_keys
-from .scene_check import check_scene, check_variant, scene_has_delta_bsdf
+from .scene_check import check_scene, check_variant
 from .store import LightStore
 
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
@@ -214,7 +214,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         through symbolic loops is unreliable) and detached sampling (gradients.py)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        check_parameters(params, scene, scene_has_delta_bsdf(scene))
+        check_parameters(params, scene)
         if spp == 0:
             spp = sensor.sampler().sample_count()
         check_scene(scene, sensor)
@@ -223,7 +223,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 f"bdpt: technique '{self.technique}' (vertex merging) is not differentiable here: the "
                 "merging kernel's derivatives (with respect to positions inside the radius) are not "
                 "implemented; differentiate with technique 'bdpt', 'pt' or 'lt'")
-        geometry = bool(geometry_keys(params))
+        geometry = tuple(geometry_keys(params))
         if geometry and self.technique == 'lt':
             raise NotImplementedError(
                 "bdpt: gradients with respect to geometry need camera subpaths: with technique 'lt' every "

@@ -6,8 +6,8 @@ connect to (s>=2), written to the light-vertex store (store.LightStore)."""
 import drjit as dr
 import mitsuba as mi
 
-from . import gradients, transport
-from .jitmath import pdf_w_to_a, safe_div, sel
+from . import transport
+from .jitmath import pdf_w_to_a, safe_div
 from .rays import spawn_to
 from .transport import Subpath
 from .vertex import IMPORTANCE, Vertex, visibility, visible
@@ -33,7 +33,7 @@ class LightTracer:
         active = dr.full(mi.Bool, True, ps.n)
         u_sel, u_pos, u_dir = sampler.next_1d(), sampler.next_2d(), sampler.next_2d()
         wl = ps.spectral[0] if ps.spectral is not None else None
-        e = gradients.sample_emission(c, c.time, u_sel, u_pos, u_dir, active, wl)
+        e = c.sampling.sample_emission(u_sel, u_pos, u_dir, active, wl)
         active = e.active
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
@@ -42,13 +42,8 @@ class LightTracer:
             self.strategy_s1_t1(u_cam, e, active & e.kinds.area)
 
         active &= c.max_depth_edges >= 2
-        si = gradients.intersect(c, e.ray, active)
-        if c.ad:
-            beta = e.beta * gradients.emission_ratio(c, e, si, u_dir, c.time, active & si.is_valid())
-            # wi from the emitter point (a material point); an infinite emitter's y0 is a direction
-            si.wi = sel(e.kinds.infinite, si.wi, si.to_local(dr.normalize(e.y0_p - si.p)))
-        else:
-            beta = e.beta
+        si = c.sampling.intersect(e.ray, active)
+        beta, si = c.sampling.first_hit(e, si, u_dir, active)
         if c.stats is not None:
             c.stats.ray('light', active, si.is_valid())
         active &= si.is_valid()
@@ -70,7 +65,7 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = e.emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        tr = visibility(c, spawn_to(ps.p, ps.n, e.err, ds.p, mi.Normal3f(0.0), 0.0, ps.time, c.offsets.far_rel,
+        tr = visibility(c, spawn_to((ps.p, ps.n, e.err), (ds.p, mi.Normal3f(0.0), 0.0), ps.time, c.offsets.far_rel,
                                     si_e.wavelengths), ok)
         ok &= visible(tr)
         pdf_light_a = e.pdf_light_a

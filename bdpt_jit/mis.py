@@ -93,6 +93,17 @@ def _finite(w):
     return dr.select(dr.isnan(w), 0.0, w)
 
 
+class EmitterDensities:
+    """What emitter sampling's weight (s=1) needs of the emitter point, one field a line."""
+
+    def __init__(self, pdf_direct_w, pdf_emit_w, cos_e, is_delta=False):
+        self.pdf_direct_w = pdf_direct_w    # emitter sampling's density per unit solid angle at z
+        #                                     (delta-position emitters: their discrete density times d^2)
+        self.pdf_emit_w = pdf_emit_w        # emission density from the emitter point towards z
+        self.cos_e = cos_e                  # |cos| at the emitter point (1 for point and infinite emitters)
+        self.is_delta = is_delta            # a delta emitter (no s=0 strategy behind it)
+
+
 class MIS:
     """Heuristic and strategy set. ``kind``: power | balance | uniform; ``strategies``: a
     strategies.StrategySet (or a technique name, bdpt | pt | lt, for its full set): a weight
@@ -114,7 +125,7 @@ class MIS:
         # contains a delta vertex is left out (the light subpaths end at their first delta
         # vertex, and the camera side's sums drop those strategies at each of its delta vertices)
         self.camera_chains = camera_chains
-        self.vm_factor = 0.0          # h(eta): set per pass by set_radius (merges)
+        self.vm_factor = 0.0          # h(eta): set per pass by for_pass (merges)
         self.vc_factor = 0.0          # h(1/eta)
         self.mis_merges = strategies.merges and not strategies.ppm
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
@@ -318,29 +329,27 @@ class MIS:
             w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
         return _finite(1.0 / (1.0 + w_camera))              # [eq. 20] w_light = 0
 
-    def weight_s1(self, d_vcm, d_vc, pdf_bsdf_w, pdf_direct_w, pdf_emit_w, cos_e, cos_z,
-                  pdf_rev_w, emitter_is_delta=False, merge_z=True):
-        """Emitter sampling (s=1, t>=2) at camera vertex z. ``pdf_bsdf_w``: z's BSDF density
-        towards the emitter point; ``pdf_direct_w``: emitter sampling density per unit solid
-        angle at z (for delta-position emitters their discrete density times d^2);
-        ``pdf_emit_w``: emission density from the emitter point towards z; ``cos_e``, ``cos_z``:
-        |cos| at the emitter point (1 for point and infinite emitters) and at z; ``pdf_rev_w``:
-        z's BSDF density of its incoming direction given the emitter direction; ``merge_z``:
-        whether a merge at z is a strategy (merge_here_camera)."""
+    def weight_s1(self, st, pdf_bsdf_w, pdf_rev_w, cos_z, em, merge_z=True):
+        """Emitter sampling (s=1, t>=2) at camera vertex z, whose MISState is ``st``.
+        ``pdf_bsdf_w``: z's BSDF density towards the emitter point; ``pdf_rev_w``: z's BSDF
+        density of its incoming direction given the emitter direction; ``cos_z``: |cos| at z;
+        ``em``: the emitter point's EmitterDensities; ``merge_z``: whether a merge at z is a
+        strategy (merge_here_camera)."""
         if not self.s.direct:
-            return 0.0 * d_vcm
-        w_light = self.h(pdf_bsdf_w / pdf_direct_w)                               # [eq. 20] strategy s=0
-        if emitter_is_delta is not False:
-            w_light = dr.select(emitter_is_delta, 0.0, w_light)                    # [eq. 20] p_0 = 0
+            return 0.0 * st.d_vcm
+        w_light = self.h(pdf_bsdf_w / em.pdf_direct_w)                            # [eq. 20] strategy s=0
+        if em.is_delta is not False:
+            w_light = dr.select(em.is_delta, 0.0, w_light)                         # [eq. 20] p_0 = 0
         if not self.s.connections:
             return _finite(1.0 / (w_light + 1.0))           # [eq. 20] w_camera = 0
-        w_camera = (self.h(pdf_emit_w * cos_z / (pdf_direct_w * cos_e))            # [eq. 21, 22], [VCM (45)]
-                    * (_gate(self.vm_factor, merge_z) + d_vcm + d_vc * self.h(pdf_rev_w)))
+        w_camera = (self.h(em.pdf_emit_w * cos_z / (em.pdf_direct_w * em.cos_e))   # [eq. 21, 22], [VCM (45)]
+                    * (_gate(self.vm_factor, merge_z) + st.d_vcm + st.d_vc * self.h(pdf_rev_w)))
         return _finite(1.0 / (w_light + 1.0 + w_camera))    # [eq. 20]
 
-    def weight_connect(self, l_vcm, l_vc, c_vcm, c_vc, pdf_cam_to_light_a, pdf_light_to_cam_a,
-                       pdf_light_rev_w, pdf_cam_rev_w, merge_z=True):
-        """Connection of light vertex y_{s-1} and camera vertex z_{t-1} (s,t>=2).
+    def weight_connect(self, light, cam, pdf_cam_to_light_a, pdf_light_to_cam_a, pdf_light_rev_w, pdf_cam_rev_w,
+                       merge_z=True):
+        """Connection of light vertex y_{s-1} and camera vertex z_{t-1} (s,t>=2): ``light``,
+        ``cam`` their MIS quantities (a MISState, or a stored record: d_vcm, d_vc).
         ``pdf_cam_to_light_a``: z's BSDF density of y (per unit area at y);
         ``pdf_light_to_cam_a``: y's BSDF density of z (per unit area at z);
         ``pdf_light_rev_w``: y's density of its incoming direction given the direction to z;
@@ -348,13 +357,13 @@ class MIS:
         ``merge_z``: whether a merge at z is a strategy (merge_here_camera). A merge at y is one
         only where merges are everywhere (y's camera-side neighbour is z, not delta)."""
         if not self.s.connections:
-            return 0.0 * l_vcm
+            return 0.0 * light.d_vcm
         merge_y = self.merge_everywhere
-        w_light = self.h(pdf_cam_to_light_a) * (_gate(self.vm_factor, merge_y) + l_vcm
-                                                + l_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
-        w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + c_vcm
-                                                 + c_vc * self.h(pdf_cam_rev_w))    # [eq. 21, 22], [VCM (41)]
-        return _finite(1.0 / (w_light + 1.0 + w_camera))                                    # [eq. 20]
+        w_light = self.h(pdf_cam_to_light_a) * (_gate(self.vm_factor, merge_y) + light.d_vcm
+                                                + light.d_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
+        w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + cam.d_vcm
+                                                 + cam.d_vc * self.h(pdf_cam_rev_w))      # [eq. 21, 22], [VCM (41)]
+        return _finite(1.0 / (w_light + 1.0 + w_camera))                                  # [eq. 20]
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
         """Light vertex y_{s-1} (s>=2) connected to the camera (t=1). ``pdf_cam_a``: density of

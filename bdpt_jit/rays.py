@@ -94,7 +94,7 @@ class RayOffsets:
     def error(self, p, shape=None, hit=True):
         """The bound ``err`` of a point ``p`` on ``shape`` (None: a point not on a surface
         interpolated from a shape: its own magnitude). ``hit``: a ray's hit point, projected onto
-        its triangle on the meshes that project (gradients.intersect); False: a position Mitsuba
+        its triangle on the meshes that project (sampling.Sampling.intersect); False: a position Mitsuba
         sampled on the shape (emitter sampling), which keeps the general bound (on the sphere mesh
         moved by 1e4 such points lie up to 2.2 units off their triangle's plane)."""
         m = dr.max(dr.abs(p))
@@ -144,12 +144,14 @@ def spawn(p, n, err, d, time, wavelengths=None):
     return mi.Ray3f(offset_origin(p, n, err, d), d, dr.largest(mi.Float), time, wl)
 
 
-def spawn_to(p, n, err, q, n_q, err_q, time, far_rel=ERR_REL, wavelengths=None):
-    """A shadow ray from the surface point ``p`` to the point ``q``: both ends moved off their
-    surfaces towards each other (``n_q`` zero and ``err_q`` 0 for a point on no surface: a
-    pinhole, a point light), and the far end shortened by ``far_rel`` of the length
-    (RayOffsets.far_rel: ERR_REL bounds the rounding of o + t d; QUADRIC_REL where the scene's
-    quadric shapes make the hit distance itself inexact)."""
+def spawn_to(start, end, time, far_rel=ERR_REL, wavelengths=None):
+    """A shadow ray from the surface point ``start`` = (p, n, err: position, geometric normal,
+    error bound) to the point ``end`` = (q, n_q, err_q): both ends moved off their surfaces
+    towards each other (``n_q`` zero and ``err_q`` 0 for a point on no surface: a pinhole, a
+    point light), and the far end shortened by ``far_rel`` of the length (RayOffsets.far_rel:
+    ERR_REL bounds the rounding of o + t d; QUADRIC_REL where the scene's quadric shapes make
+    the hit distance itself inexact)."""
+    (p, n, err), (q, n_q, err_q) = start, end
     to_q = q - p
     o = offset_origin(p, n, err, to_q)
     q_off = offset_origin(q, n_q, err_q, -to_q)
@@ -164,7 +166,7 @@ def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL, wavelengths=No
     """Shadow ray to an emitter sample ``ds`` (DirectionSample3f): ``spawn_to`` its point, or an
     unbounded ray in its direction where the sample is at infinity (environment, directional:
     ``ds.dist`` infinite)."""
-    to = spawn_to(p, n, err, ds.p, ds.n, err_q, time, far_rel, wavelengths)
+    to = spawn_to((p, n, err), (ds.p, ds.n, err_q), time, far_rel, wavelengths)
     inf = ~dr.isfinite(ds.dist)
     o_inf = offset_origin(p, n, err, ds.d)
     return mi.Ray3f(dr.select(inf, o_inf, to.o), dr.select(inf, ds.d, to.d),

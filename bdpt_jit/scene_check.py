@@ -249,7 +249,7 @@ def _flat_faces(shape) -> bool:
 
 
 class VertexNeeds:
-    """Which optional fields of a stored light vertex (light_path.FIELDS) the scene reads:
+    """Which optional fields of a stored light vertex (store.FIELDS) the scene reads:
     - geometric_normal: a shape whose shading normals differ from its face normals;
     - tangent: an anisotropic BSDF, or one this analysis does not know (kept conservatively);
     - uv (with shape and triangle): a textured BSDF, a mesh attribute, or an unknown class;

@@ -7,7 +7,6 @@ they evaluate at each vertex; the walk between vertices is this module."""
 import drjit as dr
 import mitsuba as mi
 
-from . import gradients
 from .connect import CTX_IMPORTANCE, CTX_RADIANCE, adjoint_correction, adjoint_eval, reverse_pdf_w
 from .jitmath import safe_div
 from .mis import MISState
@@ -53,7 +52,7 @@ def _sample(ctx, mode, sampler, v, active):
     or None, the samples)."""
     si = v.si
     u1, u2 = sampler.next_1d(), sampler.next_2d()
-    bs, bsdf_w = gradients.sample_bsdf(ctx, v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
+    bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
                                        si, u1, u2, active)
     wo_world = si.to_world(bs.wo)
     factor = bsdf_w
@@ -96,8 +95,7 @@ def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
     Subpath, the squared edge length between the two vertices, whether ``v`` scattered through
     a delta lobe). The hit is not yet accounted for: ``arrive`` does that."""
     ray, sub, is_delta, u = scatter(ctx, mis, mode, sampler, v, sub, merge_here)
-    si_next, beta, dist2 = gradients.next_vertex(ctx, mode == RADIANCE, v.si, v.bsdf, ray, u, is_delta,
-                                                 sub.beta, sub.active)
+    si_next, beta, dist2 = ctx.sampling.next_vertex(mode == RADIANCE, v, ray, u, is_delta, sub.beta, sub.active)
     sub.beta = beta
     if ctx.stats is not None:
         ctx.stats.ray('camera' if mode == RADIANCE else 'light', sub.active, si_next.is_valid())

@@ -65,7 +65,7 @@ class Vertex:
         """A shadow ray to the point ``q`` (``n_q``, ``err_q``: its surface, or zero and 0 for a
         point on none)."""
         si = self.si
-        return spawn_to(si.p, si.n, self.err, q, n_q, err_q, si.time, ctx.offsets.far_rel, si.wavelengths)
+        return spawn_to((si.p, si.n, self.err), (q, n_q, err_q), si.time, ctx.offsets.far_rel, si.wavelengths)
 
     def spawn_to_emitter(self, ctx, ds):
         """A shadow ray to the emitter sample ``ds`` (rays.spawn_to_emitter)."""

@@ -276,3 +276,69 @@ def test_a_bucket_shared_by_neighbouring_cells_is_read_once():
     starts, totals = Merger(None, grid, None).ranges(mi.Point3f([0.3, 1.7], [0.2, -0.4], [0.0, 0.0]), mi.UInt32(0))
     assert np.array(totals[8]).tolist() == [5, 5]
     assert np.array(starts[0]).tolist() == [0, 0]
+
+
+def test_radius_schedule_is_knaus_and_zwickers():
+    """merge.MergeSchedule: iteration i (from 1, over every render) merges within
+    r_i = r_1 i^((alpha-1)/2) and weights with eta_i = pi r_i^2 N; checked exactly (float32)
+    for the iterations of a pass that starts at iteration 5. A schedule whose exponent is off
+    (doubled: (alpha - 1) instead of (alpha - 1) / 2) is 30% off at i = 5 here."""
+    from bdpt_jit.merge import MergeSchedule, scene_radius
+    scene = plane_scene()
+    alpha, first, spp_pass, pixels = 0.6, 5, 4, 7
+    s = MergeSchedule(scene, 0.01, alpha, first, spp_pass, pixels)
+    r1 = 0.01 * scene_radius(scene)
+    i = np.arange(first, first + spp_pass, dtype=np.float64)
+    want = r1 * i ** ((alpha - 1) / 2)
+    got = np.array(s.radius(mi.UInt32(np.arange(spp_pass))), np.float64)
+    assert np.allclose(got, want, rtol=1e-6), (got, want)
+    idx = mi.UInt32(np.arange(spp_pass * pixels))
+    eta = np.array(s.eta(idx), np.float64)
+    assert np.allclose(eta, np.pi * np.tile(want, pixels) ** 2 * pixels, rtol=1e-5)
+    assert s.r_last == pytest.approx(want[-1], rel=1e-6)
+
+
+def test_the_merge_kernel_uses_its_own_iterations_radius():
+    """merge.Merger.gather: a camera vertex of iteration i gathers within r_i, the radius its
+    MIS weights take (eta_i = pi r_i^2 N), and normalises by pi r_i^2 N. Two iterations in one
+    pass (alpha 0.25: r_2 = 0.77 r_1), one light vertex each, at 0.88 r_1 from its camera vertex:
+    iteration 1 finds its vertex with exactly R/pi beta_y / (pi r_1^2 N); iteration 2 does not
+    (0.88 r_1 > r_2). A kernel that took the next iteration's radius (or the previous one's)
+    fails one of the two, and a normalisation by another radius is 30% or more off."""
+    from bdpt_jit.merge import MergeSchedule, Merger, PhotonGrid
+    from bdpt_jit.mis import MISState
+    from bdpt_jit.store import LightStore, StoredVertex
+    from bdpt_jit.transport import Subpath
+    from bdpt_jit.vertex import Vertex
+    scene = plane_scene()
+    integ = mi.load_dict({'type': 'bdpt', 'technique': 'vm'})
+    ctx = integ.make_context(scene, scene.sensors()[0])
+    sched = MergeSchedule(scene, 0.01, 0.25, 1, 2, 1)             # iterations 1 and 2, N = 1
+    r = np.array(sched.radius(mi.UInt32([0, 1])), np.float64)
+    assert r[1] < 0.8 * r[0]
+    z = np.array([[0.1, -0.2, 0.0], [0.3, 0.1, 0.0]])              # the camera vertices (on the plane)
+    y = z + np.array([0.88 * r[0], 0.0, 0.0])                     # each iteration's light vertex
+
+    def hit(pts):
+        o = mi.Point3f(*[mi.Float(pts[:, k] + (1.0 if k == 2 else 0.0)) for k in range(3)])
+        si = scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(0, 0, -1)))
+        assert np.all(np.array(si.is_valid()))
+        return si
+    beta_y = 0.37
+    si_y = hit(y)
+    si_y.wi = mi.Vector3f(0, 0, 1)                                # the light came from straight above
+    light = Subpath(beta=mi.Color3f(beta_y), mis=MISState(mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)),
+                    depth=mi.UInt32(1), active=mi.Bool(True))
+    store = LightStore(n=2, capacity=1, record=StoredVertex)
+    StoredVertex.store(store.v, StoredVertex.make(Vertex(si_y, si_y.bsdf(), mi.Float(0.0)), light),
+                       store.slot(mi.UInt32(0), dr.arange(mi.UInt32, 2)), mi.Bool(True))
+    store.count = mi.UInt32([1, 1])
+    merger = Merger(ctx, PhotonGrid(scene, store, sched), ctx.mis.for_pass())
+    si_z = hit(z)
+    si_z.wi = mi.Vector3f(0, 0, 1)                                # seen from straight above
+    cam = Subpath(beta=mi.Color3f(1.0), mis=MISState(mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)),
+                  depth=mi.UInt32(1), active=mi.Bool(True))
+    got = np.array(merger.gather(dr.arange(mi.UInt32, 2), Vertex.at(ctx, si_z), cam, mi.Bool(True)))[0]
+    want = RHO / np.pi * beta_y / (np.pi * r[0] ** 2 * 1)
+    assert got[0] == pytest.approx(want, rel=1e-4), (got, want)
+    assert got[1] == 0.0, got

@@ -28,12 +28,11 @@ light tracing cannot reach (``delta``: orthographic, radiancemeter, ...;
 ``StrategySet(..., camera_reachable=False)``): no strategy with t=1 exists, bdpt combines hits,
 direct and connections, its weights must still sum to one, and ``lt`` is refused."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from bdpt_jit.mis import MIS
+from bdpt_jit.mis import MIS, EmitterDensities, MISState
 from bdpt_jit.strategies import StrategySet
 
 M = 512   # random paths per length
@@ -261,8 +260,8 @@ def recursive(kind, technique, P, chains=False):
                 pdf_direct_w, cos_e = P['p_direct_a'] * d2[:, 0], np.ones(M)
             else:
                 pdf_direct_w, cos_e = P['p_direct_a'], np.ones(M)
-            w = mis.weight_s1(c_vcm, c_vc, F(pE[:, 1]), F(pdf_direct_w), pdf_emit_w,
-                              F(cos_e), F(cosB[:, 0]), F(pL[:, 1]), emitter_is_delta=B(np.full(M, delta)),
+            w = mis.weight_s1(MISState(c_vcm, c_vc), F(pE[:, 1]), F(pL[:, 1]), F(cosB[:, 0]),
+                              EmitterDensities(F(pdf_direct_w), pdf_emit_w, F(cos_e), B(np.full(M, delta))),
                               merge_z=mis.merge_here_camera(B(delta_v[:, 2])))
         elif t == 1:
             l_vcm, l_vc, _ = light_state(k - 1)
@@ -270,7 +269,7 @@ def recursive(kind, technique, P, chains=False):
         else:
             l_vcm, l_vc, _ = light_state(s - 1)
             c_vcm, c_vc, _ = camera_state(s)
-            w = mis.weight_connect(l_vcm, l_vc, c_vcm, c_vc,
+            w = mis.weight_connect(MISState(l_vcm, l_vc), MISState(c_vcm, c_vc),
                                    F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1]),
                                    F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1]),
                                    F(pE[:, s - 1]), F(pL[:, s]), merge_z=mis.merge_here_camera(B(delta_v[:, s + 1])))
@@ -325,9 +324,9 @@ def test_weights_are_never_nan(kind):
     mis = MIS(kind, StrategySet('bdpt'))
     inf, zero, one = mi.Float(np.inf), mi.Float(0.0), mi.Float(1.0)
     ws = [mis.weight_s0(inf, one, zero, one), mis.weight_s0(one, inf, one, zero),
-          mis.weight_s1(inf, one, one, one, zero, one, one, one),
-          mis.weight_connect(inf, one, one, one, zero, one, one, one),
-          mis.weight_connect(one, one, inf, inf, one, zero, one, zero),
+          mis.weight_s1(MISState(inf, one), one, one, one, EmitterDensities(one, zero, one)),
+          mis.weight_connect(MISState(inf, one), MISState(one, one), zero, one, one, one),
+          mis.weight_connect(MISState(one, one), MISState(inf, inf), one, zero, one, zero),
           mis.weight_t1(inf, one, zero, one)]
     for w in ws:
         a = np.array(w, dtype=np.float64)

@@ -163,13 +163,17 @@ def test_gradients_in_other_variants(variant):
 
 def test_switching_variants_in_one_process():
     """bdpt_jit imported under one variant keeps working after mi.set_variant + register():
-    the kernels' modules (holding the variant's types) are imported again."""
+    the kernels' modules (holding the variant's types) are imported again. The render before and
+    after the switch agree to float32 rounding, not bit for bit: the light image is a sum of
+    atomic float adds in no fixed order (two same-seed renders differed in the last bits under
+    load)."""
     code = ("import numpy as np, mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\nimport bdpt_jit\n"
             "mi.set_log_level(mi.LogLevel.Error)\n"
             "def render():\n    d = mi.cornell_box(); d['sensor']['film'].update(width=8, height=8)\n"
             "    return np.array(mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 3}), spp=4))\n"
             "a = render()\nmi.set_variant('llvm_ad_mono'); bdpt_jit.register()\nb = render()\n"
             "mi.set_variant('llvm_ad_rgb'); bdpt_jit.register()\nc = render()\n"
-            "print('SHAPES', a.shape, b.shape, c.shape, np.isfinite(b).all(), float(b.mean()) > 0, np.array_equal(a, c))\n")
+            "print('SHAPES', a.shape, b.shape, c.shape, np.isfinite(b).all(), float(b.mean()) > 0,\n"
+            "      np.allclose(a, c, rtol=1e-5, atol=1e-7))\n")
     r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=600)
     assert 'SHAPES (8, 8, 3) (8, 8, 1) (8, 8, 3) True True True' in r.stdout, r.stdout + r.stderr[-3000:]

@@ -1,0 +1,118 @@
+"""Per-emitter tables that endpoints.EmitterTable reads in its kernels, built once per scene
+from the scene's emitters and indexed by each emitter's registry id: the kinds of an emitter,
+the cones of spot lights and projectors, the spheres that emitter sampling treats as seen
+from outside (direct.py), and the inverse surface areas of area emitters' shapes."""
+
+import math
+import re
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def emitter_kinds(flags) -> set:
+    """The kinds (Kinds' names) of one emitter, from its flags (Python ints)."""
+    f = mi.EmitterFlags
+    surface, ddir = mi.has_flag(flags, f.Surface), mi.has_flag(flags, f.DeltaDirection)
+    kinds = set()
+    if surface:
+        kinds.add('dir_area' if ddir else 'area')
+    if mi.has_flag(flags, f.DeltaPosition):
+        kinds.add('delta_pos')
+    if ddir and not surface:
+        kinds.add('delta_dir')
+    if mi.has_flag(flags, f.Infinite):
+        kinds.add('infinite')
+    return kinds
+
+
+def spot_cones(emitters, ids, size):
+    """(cos of the cutoff, unit axis) per emitter id: a spot light's cone, a projector's
+    (projector_cone); the whole sphere (cos = -1) for every other emitter."""
+    cos_cut, axis = [-1.0] * size, [[0.0, 0.0, 1.0] for _ in range(size)]
+    for e, i in zip(emitters, ids):
+        if e.class_name() == 'SpotLight':
+            params = mi.traverse(e)
+            cos_cut[i] = math.cos(math.radians(float(dr.ravel(params['cutoff_angle']).numpy()[0])))
+            m = np.array(e.world_transform().matrix).reshape(4, 4)
+            a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
+            axis[i] = [float(a[0]), float(a[1]), float(a[2])]
+        elif e.class_name() == 'Projector':
+            cos_cut[i], axis[i] = projector_cone(e)
+    return mi.Float(cos_cut), mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
+
+
+def sphere_table(emitters, ids, size):
+    """(radius, centre) per emitter id of untextured sphere area emitters, whose emitter
+    sampling from points that see them small is done by bdpt (direct.py); radius 0 for every
+    other emitter (a textured sphere keeps Mitsuba's sampling: by the texture, no cone)."""
+    sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
+    for e, i in zip(emitters, ids):
+        shape = e.get_shape()
+        if shape is not None and shape.class_name() == 'Sphere' and emitter_kinds(e.flags()) == {'area'} \
+                and not mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying):
+            m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
+            sph_r[i] = float(np.linalg.norm(m[:3, 0]))
+            sph_c[i] = [float(x) for x in m[:3, 3]]
+    return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
+
+
+def inverse_areas(emitters, ids, size):
+    """1 / area of each area emitter's shape per emitter id: Mitsuba's uniform position density
+    (read from this table, not through a shape call: a virtual call on shapes reaches instances,
+    whose pdf_position raises, in scenes that have any)."""
+    inv_area = [0.0] * size
+    for e, i in zip(emitters, ids):
+        shape = e.get_shape()
+        if shape is not None:
+            area = float(dr.ravel(shape.surface_area()).numpy()[0])
+            inv_area[i] = 1.0 / area if area > 0 else 0.0
+    return mi.Float(inv_area)
+
+
+def projector_cone(emitter):
+    """(cos of the half angle, unit axis) of a circular cone around a ``projector``'s frustum:
+    light subpaths sample their directions uniformly in it (directions outside the frustum get
+    no intensity from Mitsuba's ``sample_direction``), and the densities use the same cone.
+    The frustum is Mitsuba's: x_fov (from the emitter's description: Mitsuba exposes no
+    accessor) and the texture's aspect, image plane at z = 1 of the emitter's to_world,
+    half-extents tan(x_fov / 2) and that over the aspect. The corners' directions bound it (a
+    circular cone containing the four edges contains their convex hull); the cone is widened
+    by 1e-3 of its angle, and checked against the directions of Mitsuba's own ``sample_ray``."""
+    from .scene_check import UnsupportedSceneError
+    match = re.search(r'x_fov = ([0-9.eE+-]+)', str(emitter))
+    if match is None:
+        raise UnsupportedSceneError("bdpt: cannot read the field of view of the projector emitter "
+                                    "(Mitsuba's description of it has no x_fov)")
+    tan_x = math.tan(math.radians(float(match.group(1))) / 2)
+    params = mi.traverse(emitter)
+    aspect = 1.0
+    if 'irradiance.data' in params.keys():
+        h, w = np.array(params['irradiance.data']).shape[:2]
+        aspect = w / h
+    tan_y = tan_x / aspect
+    m = np.array(emitter.world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
+    axis = m @ np.array([0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis)
+    cos_min = 1.0
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            c = m @ np.array([sx * tan_x, sy * tan_y, 1.0])
+            cos_min = min(cos_min, float(np.dot(axis, c / np.linalg.norm(c))))
+    angle = math.acos(max(-1.0, min(1.0, cos_min))) * (1 + 1e-3) + 1e-6
+    if angle >= math.pi / 2:
+        raise UnsupportedSceneError("bdpt: a projector emitter wider than a hemisphere is not supported")
+    cos_cut = math.cos(angle)
+    # Mitsuba's own emitted directions must lie in the cone (a check of the frustum read above)
+    n = 4096
+    rng = np.random.default_rng(0)
+    u = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    ray, w = emitter.sample_ray(0.0, 0.5, u, u, True)
+    d = np.array(ray.d, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=0, keepdims=True)          # (3, n)
+    lit = np.broadcast_to(np.array(dr.max(w), dtype=np.float64).reshape(-1) > 0, (n,))
+    if np.any((axis @ d)[lit] < cos_cut):
+        raise UnsupportedSceneError("bdpt: the projector emitter's frustum could not be bounded "
+                                    "(its emitted directions leave the cone computed from its field of view)")
+    return cos_cut, [float(axis[0]), float(axis[1]), float(axis[2])]
