@@ -201,48 +201,49 @@ class CameraTracer:
         sub = Subpath(beta, dr.max(beta), st, mi.UInt32(1), si.is_valid() & (max_edges >= 1))
         return film_pos, ray, si, L, alpha, aov_values, sub
 
-    @dr.syntax
+    mode = RADIANCE
+    label = 'bdpt_camera_subpath'
+
     def trace(self):
         """Trace the pass's camera subpaths, evaluate every camera-side strategy at each vertex
         and put the samples on the film."""
-        c, ps, mis = self.ctx, self.ps, self.mis
-        max_edges = c.max_depth_edges
+        ps = self.ps
         film_pos, ray, si, L, alpha, aov_values, sub = self.first_hit()
         wavelengths = ray.wavelengths
-        idx = dr.arange(mi.UInt32, ps.n)
-        sampler = ps.sampler                             # named in the loop: its state is loop state
+        self.idx = dr.arange(mi.UInt32, ps.n)
         prev = dr.zeros(mi.Interaction3f, ps.n)          # previous camera vertex (depth > 1)
         prev_delta = dr.zeros(mi.Bool, ps.n)             # it scattered through a delta lobe (the camera: no)
-
-        while dr.hint(sub.active, label='bdpt_camera_subpath'):
-            v = Vertex.at(c, si, ray)
-
-            # ---------------- s = 0: the camera subpath hits an emitter ----------------
-            if dr.hint(c.strategies.trace_s0, mode='scalar'):
-                L += self.strategy_s0(v, ray, prev, sub)
-
-            sub.active = sub.active & (sub.depth + 1 <= max_edges)     # every strategy below adds an edge
-            smooth = sub.active & v.smooth(c.diffuse)
-            merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
-
-            # ---------------- s = 1: emitter sampling ----------------
-            if dr.hint(c.strategies.trace_s1, mode='scalar'):
-                L += self.strategy_s1(v, sub, smooth, merge_here)
-
-            # ---------------- s >= 2: connect to the light subpath ----------------
-            if dr.hint(c.strategies.trace_connect, mode='scalar'):
-                L += self.connect_all(idx, v, sub, smooth, merge_here)
-
-            # ---------------- merges with the light vertices within the radius ----------------
-            if dr.hint(c.strategies.trace_merge, mode='scalar'):
-                L += ps.merger.gather(idx, v, sub, smooth & merge_here)
-
-            # ---------------- continue the walk ----------------
-            prev = mi.Interaction3f(si)
-            ray, si, sub, dist2, prev_delta = transport.advance(c, mis, RADIANCE, sampler, v, sub, merge_here)
-            if dr.hint(c.strategies.trace_env, mode='scalar'):
-                L += self.strategy_s0_env(ray, prev, sub.depth + 1, sub.beta, sub.mis,
-                                          sub.active & ~si.is_valid())
-            sub = transport.arrive(mis, RADIANCE, sub, si, ray, dist2)
-
+        _, _, (L, _, _) = transport.walk(self.ctx, self.mis, ps.sampler, self, si, ray, sub, (L, prev, prev_delta))
         ps.film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths, aov_values)
+
+    def go_on(self, sub, carry):
+        return sub.active
+
+    def vertex(self, si, ray):
+        return Vertex.at(self.ctx, si, ray)
+
+    def at_vertex(self, v, ray, sub, carry):
+        """At camera vertex z: the hit (s=0), emitter sampling (s=1), the connections (s >= 2)
+        and the merges. ``carry``: (radiance so far, the previous vertex, whether it was delta)."""
+        c, ps, mis = self.ctx, self.ps, self.mis
+        L, prev, prev_delta = carry
+        if c.strategies.trace_s0:
+            L = L + self.strategy_s0(v, ray, prev, sub)
+        sub.active = sub.active & (sub.depth + 1 <= c.max_depth_edges)     # every strategy below adds an edge
+        smooth = sub.active & v.smooth(c.diffuse)
+        merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
+        if c.strategies.trace_s1:
+            L = L + self.strategy_s1(v, sub, smooth, merge_here)
+        if c.strategies.trace_connect:
+            L = L + self.connect_all(self.idx, v, sub, smooth, merge_here)
+        if c.strategies.trace_merge:
+            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_here)
+        return sub, (L, prev, prev_delta), merge_here
+
+    def after_step(self, ray, si, v, sub, carry, was_delta):
+        """After the scatter at ``v``: the environment where the ray left the scene (s=0)."""
+        L, _, _ = carry
+        prev = mi.Interaction3f(v.si)
+        if self.ctx.strategies.trace_env:
+            L = L + self.strategy_s0_env(ray, prev, sub.depth + 1, sub.beta, sub.mis, sub.active & ~si.is_valid())
+        return L, prev, was_delta

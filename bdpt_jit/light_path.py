@@ -99,14 +99,21 @@ class LightTracer:
             c.layers.add(sub.depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
     # ------------------------------------------------------------------ walk
+    mode = IMPORTANCE
+    label = 'bdpt_light_subpath'
+
     def trace(self):
-        """Trace the pass's light subpaths; splat the t=1 strategies; fill the pass's store."""
+        """Trace the pass's light subpaths; splat the t=1 strategies; fill the pass's store.
+        With a growable storage (max_depth -1) lanes whose storage is full pause, the storage
+        grows, and the walk resumes."""
         c, store = self.ctx, self.ps.store
         si, sub = self.start()
-        idx = dr.arange(mi.UInt32, self.ps.n)
+        ray = dr.zeros(mi.Ray3f, self.ps.n)             # (the walk's ray: not read on this side)
+        self.idx = dr.arange(mi.UInt32, self.ps.n)
         count = dr.zeros(mi.UInt32, self.ps.n)
         while True:
-            si, sub, count = self.walk(idx, si, sub, count)
+            self.cap_eff = store.capacity if store is not None and c.unbounded else 0xFFFFFFFF
+            si, sub, (count,) = transport.walk(c, self.mis, self.ps.sampler, self, si, ray, sub, (count,))
             if store is None:
                 break
             store.count = count
@@ -114,42 +121,29 @@ class LightTracer:
                 break
             store.grow()             # lanes paused on a full storage resume with more levels
 
-    @dr.syntax
-    def walk(self, idx, si, sub, count):
-        """The walk from ``si`` on: at each vertex store it (s >= 2, t >= 2), splat it (t=1),
-        scatter; lanes pause where a growable storage is full."""
+    def go_on(self, sub, carry):
+        return sub.active & (carry[0] < self.cap_eff)
+
+    def vertex(self, si, ray):
+        return Vertex.at(self.ctx, si)
+
+    def at_vertex(self, v, ray, sub, carry):
+        """At light vertex y_depth: store it (s >= 2, t >= 2) and splat it (t=1)."""
         c, store = self.ctx, self.ps.store
+        (count,) = carry
         max_edges = c.max_depth_edges
-        store_on = store is not None
-        # Read the store before the loop: its array is excluded from the loop state so that
-        # the scatters land in it, not in a copy
-        st_v = store.v if store_on else None
-        slot_of = store.slot if store_on else None
-        make_record = store.record.make if store_on else None
-        store_record = store.record.store if store_on else None
-        pausing = store_on and c.unbounded     # bounded storage is sized to never fill
-        # a stored vertex is followed by an edge and a camera vertex (connections) or by a camera
-        # vertex at the same place (merges)
-        store_edges = 1 if c.strategies.trace_merge else 2
-        cap_eff = store.capacity if pausing else 0xFFFFFFFF
-        sampler = self.ps.sampler                # named in the loop: its state is loop state
-        while dr.hint(sub.active & (count < cap_eff), label='bdpt_light_subpath', exclude=[st_v]):
-            v = Vertex.at(c, si)
-            smooth = v.smooth(c.diffuse)
+        smooth = v.smooth(c.diffuse)
+        if store is not None:
+            # a stored vertex is followed by an edge and a camera vertex (connections) or by a
+            # camera vertex at the same place (merges)
+            store_edges = 1 if c.strategies.trace_merge else 2
+            do_store = sub.active & smooth & (sub.depth + store_edges <= max_edges)
+            store.record.store(store.v, store.record.make(v, sub), store.slot(count, self.idx), do_store)
+            count = count + dr.select(do_store, 1, 0)
+        if c.strategies.trace_splat:
+            self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
+        sub.active = sub.active & (sub.depth + 2 <= max_edges)
+        return sub, (count,), True
 
-            # ---------------- store y_depth for connections (s >= 2, t >= 2) ----------------
-            if dr.hint(store_on, mode='scalar'):
-                do_store = sub.active & smooth & (sub.depth + store_edges <= max_edges)
-                store_record(st_v, make_record(v, sub), slot_of(count, idx), do_store)
-                count[do_store] += 1
-
-            # ---------------- t = 1: connect y_depth to the camera ----------------
-            if dr.hint(c.strategies.trace_splat, mode='scalar'):
-                self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
-
-            # ---------------- continue the walk ----------------
-            sub.active = sub.active & (sub.depth + 2 <= max_edges)
-            ray, si, sub, dist2, _ = transport.advance(c, self.mis, IMPORTANCE, sampler, v, sub)
-            sub = transport.arrive(self.mis, IMPORTANCE, sub, si, ray, dist2)
-        return si, sub, count
-
+    def after_step(self, ray, si, v, sub, carry, was_delta):
+        return carry

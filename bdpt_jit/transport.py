@@ -109,3 +109,28 @@ def arrive(mis, mode, sub, si, ray, dist2):
     active = sub.active & si.is_valid()
     st = mis.hit(sub.mis, dist2, dr.abs(dr.dot(si.n, ray.d)), mode == RADIANCE)
     return Subpath(sub.beta, sub.beta_start, st, sub.depth + 1, active)
+
+
+@dr.syntax
+def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
+    """The random walk of a subpath from its hit ``si`` (found by ``ray``), the same loop for
+    both directions: at each vertex the tracer evaluates its strategies, then the walk scatters
+    and finds the next vertex. ``tracer`` (a LightTracer or a CameraTracer) gives:
+
+        mode                 RADIANCE (camera subpaths) or IMPORTANCE (light subpaths)
+        label                the loop's name in the kernels
+        go_on(sub, carry)    the lanes that go on
+        vertex(si, ray)      the vertex.Vertex at a hit
+        at_vertex(v, ray, sub, carry) -> (sub, carry, merge_here)   its strategies at v
+        after_step(ray, si, v, sub, carry, was_delta) -> carry  what follows the step (before the hit counts)
+
+    ``carry``: the tracer's own loop state (a tuple of Dr.Jit values). Returns (si, sub, carry)
+    where the walk stopped. ``sampler`` is named here so that its state is loop state."""
+    mode = tracer.mode
+    while dr.hint(tracer.go_on(sub, carry), label=tracer.label):
+        v = tracer.vertex(si, ray)
+        sub, carry, merge_here = tracer.at_vertex(v, ray, sub, carry)
+        ray, si, sub, dist2, was_delta = advance(ctx, mis, mode, sampler, v, sub, merge_here)
+        carry = tracer.after_step(ray, si, v, sub, carry, was_delta)
+        sub = arrive(mis, mode, sub, si, ray, dist2)
+    return si, sub, carry
