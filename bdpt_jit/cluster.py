@@ -195,26 +195,31 @@ def worker_variant(variant, gpu):
 
 
 def _node_and_attempt():
-    """(node address, attempt number of this task: 0 first, 1 for its first rerun) under Ray;
-    ('local', 0) in-process."""
+    """(node address, attempt number of this task: 0 first, 1 for its first rerun, GPU
+    assigned, CPUs assigned) under Ray; ('local', 0, False, None) in-process."""
     try:
         import ray
         if not ray.is_initialized():
-            return 'local', 0, False
+            return 'local', 0, False, None
         from ray._private import worker as _w          # attempt number: no public API in Ray 2.60
         attempt = _w.global_worker.core_worker.get_current_task_attempt_number()
-        return ray.util.get_node_ip_address(), int(attempt), bool(ray.get_gpu_ids())
+        cpus = ray.get_runtime_context().get_assigned_resources().get('CPU')
+        return ray.util.get_node_ip_address(), int(attempt), bool(ray.get_gpu_ids()), cpus
     except Exception:
-        return 'local', 0, False
+        return 'local', 0, False, None
 
 
-def _start_worker(job, gpu):
-    """Set the variant and register the plugin on this worker; one clear error if it cannot."""
+def _start_worker(job, gpu, cpus):
+    """Set the variant and register the plugin on this worker, Dr.Jit's CPU threads to the
+    task's CPUs (LLVM); one clear error if it cannot."""
     variant = worker_variant(job.variant, gpu)
     try:
+        import drjit as dr
         import mitsuba as mi
         if mi.variant() != variant:
             mi.set_variant(variant)
+        if cpus and variant.startswith('llvm_') and dr.thread_count() != max(int(cpus), 1):
+            dr.set_thread_count(max(int(cpus), 1))
         import bdpt_jit
         bdpt_jit.register()
     except Exception as e:
@@ -296,8 +301,8 @@ def run_chunk(job, chunk):
     """A chunk's task body (a Ray task, or in-process for ``render_chunks_locally``): the
     scene loaded, the chunk rendered, its arrays and timings returned."""
     t0 = time.perf_counter()
-    node, attempt, gpu = _node_and_attempt()
-    variant = _start_worker(job, gpu)
+    node, attempt, gpu, cpus = _node_and_attempt()
+    variant = _start_worker(job, gpu, cpus)
     if job.hook is not None:
         job.hook(chunk.index, attempt)
     (scene, scene_path), load_s = _worker_scene(job, variant)
@@ -901,3 +906,81 @@ def _cli_result(outcome, job, options, slots, args):
     res.interrupted = outcome.interrupted
     res.cluster_stats, res.cluster_lines = cli_statistics(outcome, options, slots)
     return res
+
+
+# ----------------------------------------------------------------------------- overhead figures
+def measure_overhead(scene_file, defines, spp, chunk_spps, options=None):
+    """docs/cluster.md's figures: the same bdpt render (``spp``) in one process (its second
+    run: kernels cached) and on the cluster in chunks of each of ``chunk_spps``, after a
+    warm-up render on the cluster. Returns (rows, one-process seconds, warm-up Outcome); a
+    row: chunk_spp, chunks, wall s, mean load / compile / render / task / driver latency s
+    per chunk."""
+    import mitsuba as mi
+    options = dataclasses.replace(options or Options())
+    scene = driver_scene(scene_file, dict(defines), 'bdpt')
+    props = {'type': 'bdpt', 'statistics': False}
+    for _ in range(2):
+        t0 = time.perf_counter()
+        mi.render(scene, integrator=mi.load_dict(props), spp=spp, seed=0)
+        one_s = time.perf_counter() - t0
+    ray, started = connect(options)
+    rows, warm = [], None
+    try:
+        for chunk_spp in [max(chunk_spps)] + list(chunk_spps):
+            options.chunk_spp = chunk_spp
+            job, chunks = make_job(scene, scene_file, mi.load_dict(props), spp, 0, defines, options, props)
+            out = execute(ray, scene, job, chunks, options)
+            if warm is None:
+                warm = out
+                continue
+            rows.append(dict(chunk_spp=chunk_spp, chunks=len(chunks), wall_s=out.wall_s, **overheads(out),
+                             **_per_worker(out)))
+    finally:
+        if started:
+            ray.shutdown()
+    return rows, one_s, warm
+
+
+def _per_worker(out):
+    """Scene loading and compiling per worker process (paid by its first chunk of a job), and
+    the mean task time of the other chunks (samples and per-chunk costs only)."""
+    firsts, rest = {}, []
+    for i in sorted(out.chunks):
+        r = out.chunks[i]
+        (rest.append(r['task_s']) if r['pid'] in firsts else firsts.setdefault(r['pid'], r))
+    setup = [r['load_s'] + r['compile_s'] for r in firsts.values()]
+    return dict(workers=len(firsts), setup_s=sum(setup) / len(setup),
+                steady_task_s=sum(rest) / len(rest) if rest else float('nan'))
+
+
+def _main(argv=None):
+    """python -m bdpt_jit.cluster SCENE SPP CHUNK_SPP... [-D NAME=VALUE] [--address A]: the
+    overhead table of docs/cluster.md on this machine."""
+    import argparse
+    ap = argparse.ArgumentParser(prog='python -m bdpt_jit.cluster', description=_main.__doc__)
+    ap.add_argument('scene')
+    ap.add_argument('spp', type=int)
+    ap.add_argument('chunk_spp', type=int, nargs='+')
+    ap.add_argument('-D', dest='defines', action='append', default=[])
+    ap.add_argument('--address', default='local')
+    args = ap.parse_args(argv)
+    import mitsuba as mi
+    mi.set_variant('llvm_ad_rgb')
+    import bdpt_jit
+    bdpt_jit.register()
+    defines = dict(d.split('=', 1) for d in args.defines)
+    rows, one_s, warm = measure_overhead(args.scene, defines, args.spp, args.chunk_spp, Options(address=args.address))
+    first = warm.chunks[0]
+    print(f"one process: {one_s:.3f} s; cluster warm-up: first chunk on a fresh worker: task {first['task_s']:.3f} s "
+          f"(scene load {first['load_s']:.3f} s, JIT compile {first['compile_s']:.3f} s), on the driver "
+          f"{first['latency_s']:.3f} s")
+    print('| chunk spp | chunks | workers | wall s | one process / wall | load + compile s per worker | '
+          'task s (other chunks) | task s (all, mean) | on the driver s (mean) |')
+    print('|---|---|---|---|---|---|---|---|---|')
+    for r in rows:
+        print(f"| {r['chunk_spp']} | {r['chunks']} | {r['workers']} | {r['wall_s']:.3f} | {one_s / r['wall_s']:.2f} | "
+              f"{r['setup_s']:.3f} | {r['steady_task_s']:.4f} | {r['task_s']:.4f} | {r['latency_s']:.4f} |")
+
+
+if __name__ == '__main__':
+    _main()

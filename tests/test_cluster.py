@@ -157,6 +157,18 @@ def test_merge_iterations_matter(ray_cluster):
     assert (np.abs(wrong - right)[big] / right[big]).max() > 1e-4
 
 
+def test_seeded_renders_equal_the_same_calls_here(ray_cluster):
+    """compare.py --cluster's reference batches: one mi.render per seed on a worker."""
+    props = {'type': 'path', 'max_depth': 8}
+    images = cluster.render_seeded(CORNELL, {'res': '8', 'integrator': 'path'}, props, 4, [11, 12],
+                                   cluster.Options(address='auto'))
+    scene = mi.load_file(CORNELL, res='8', integrator='path')
+    for img, seed in zip(images, (11, 12)):
+        ref = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=4, seed=seed))
+        assert_same(img, ref)
+    assert np.abs(images[0] - images[1]).max() > 1e-3       # the seeds differ
+
+
 def _kill_second_chunk_hook(flag):
     def hook(index, attempt):
         # the first attempt of chunk 1 tells its pid and waits to be killed
