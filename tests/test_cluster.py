@@ -298,6 +298,22 @@ def test_command_writes_the_cluster_image(ray_cluster, tmp_path):
     assert_same(img, cluster.render_chunks_locally(job, chunks, scene).image)
 
 
+def test_command_time_budget_keeps_whole_chunks(ray_cluster, tmp_path):
+    out = tmp_path / 'timed.exr'
+    budget = 1.5
+    code, err = _main_stderr(['render', CORNELL, '--cluster', 'auto', '--time', str(budget), '--pass-spp', '1',
+                              '-D', f'res={RES}', '-o', str(out), '-q'])
+    assert code == 0, err
+    f = OpenEXR.File(str(out), separate_channels=True)
+    h = f.header()
+    chunks = int(h['bdpt.cluster.chunks'])
+    assert chunks >= 1 and h['bdpt.spp'] == str(chunks) and h['bdpt.interrupted'] == 'false'   # 1 spp each
+    assert int(h['bdpt.samples']) == chunks * PIXELS and h['bdpt.cluster.chunks_planned'] == 'endless (--time)'
+    assert float(h['bdpt.render_time_s']) <= budget + 1.0
+    img = np.stack([f.channels()[c].pixels for c in 'RGB'], -1)
+    assert np.isfinite(img).all() and img.mean() > 0
+
+
 def test_without_ray_the_command_says_how_to_install_it(tmp_path):
     fake = tmp_path / 'fake' / 'ray'
     fake.mkdir(parents=True)
