@@ -86,8 +86,9 @@ class Chunk:
 # ----------------------------------------------------------------------------- planning
 def iter_chunks(job, chunk_spp, passes=()):
     """The chunk plan: consecutive passes of bdpt's pass plan ``passes`` (``pass_plan``; an
-    iterable, endless with --time) grouped until a chunk holds at least chunk_spp x pixels samples; for a
-    Mitsuba integrator, mi.render calls of chunk_spp (the last one shorter)."""
+    iterable, endless with --time) grouped until a chunk holds at least chunk_spp x pixels
+    samples (so a chunk ends where a sweep of the image ends: passes of pixel ranges never
+    straddle one); for a Mitsuba integrator, mi.render calls of chunk_spp (the last shorter)."""
     if not job.bdpt:
         yield from _mitsuba_chunks(job, chunk_spp)
         return
@@ -140,12 +141,12 @@ def render_chunk_arrays(integ, scene, job, chunk):
     counts (ctx.stats.totals) as numpy."""
     import numpy as np
     from .film import FilmAccumulator
-    from .passes import pass_seed  # noqa: F401  (render_pass seeds pass i with pass_seed(seed, i))
     sensor = scene.sensors()[0]
     ctx = integ.make_context(scene, sensor, job.spp)
     acc = FilmAccumulator(sensor.film(), ctx.aov_names)
     integ.merge_iteration = chunk.merge_iteration
     levels = 0
+    # pass i of the render's plan: render_pass seeds it with passes.pass_seed(seed, i)
     for i, (spp_pass, pixel_start, pixel_count) in enumerate(chunk.passes, chunk.first_pass):
         levels = max(levels, integ.render_pass(ctx, acc, job.seed, i, spp_pass, pixel_start, pixel_count))
     info = integ.render_info(ctx, job.spp, job.n_pixels, chunk.samples, False, levels)
