@@ -25,6 +25,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..rays import RayOffsets, spawn
+
 MAX_LANES = 1 << 22             # samples traced per kernel launch (memory: ~100 bytes a lane)
 DEFAULT_MAX_DEPTH = 16          # delta vertices followed before giving up
 SEED_SALT = 0x5EEDF00D          # the feature pass's seeds differ from the render's
@@ -106,20 +108,24 @@ def _follow_delta(bsdf, si, sampler, active):
 
 @dr.syntax
 def _walk(scene, sampler, ray, max_depth, n_albedo):
-    """Follow delta vertices; returns (albedo Floats, normal Vector3f) of each sample."""
+    """Follow delta vertices; returns (albedo Floats, normal Vector3f) of each sample. Rays leave
+    their surfaces as every other ray of bdpt_jit does (rays.RayOffsets, rays.spawn)."""
+    tracing = (scene, RayOffsets(scene))
     n = dr.width(ray.o)
     albedo = [dr.zeros(mi.Float, n) for _ in range(n_albedo)]
     normal = dr.zeros(mi.Vector3f, n)
     active = dr.full(mi.Bool, True, n)
     depth = mi.UInt32(0)
     while dr.hint(active, label='bdpt_feature_pass'):
-        ray, active, albedo, normal = _step(scene, sampler, ray, active, depth, max_depth, albedo, normal)
+        ray, active, albedo, normal = _step(tracing, sampler, ray, active, depth, max_depth, albedo, normal)
         depth += 1
     return albedo, normal
 
 
-def _step(scene, sampler, ray, active, depth, max_depth, albedo, normal):
-    """One vertex of the walk: record the features where it stops, else the next ray."""
+def _step(tracing, sampler, ray, active, depth, max_depth, albedo, normal):
+    """One vertex of the walk: record the features where it stops, else the next ray
+    (``tracing``: the scene and its rays.RayOffsets)."""
+    scene, offsets = tracing
     si = scene.ray_intersect(ray, active)
     hit = active & si.is_valid()
     bsdf = si.bsdf(ray)
@@ -141,7 +147,7 @@ def _step(scene, sampler, ray, active, depth, max_depth, albedo, normal):
     record = stop | miss | give_up
     albedo = [dr.select(record, v, a) for v, a in zip(value, albedo)]
     normal = dr.select(stop | give_up, si.sh_frame.n, normal)
-    return si.spawn_ray(d), delta & ok, albedo, normal
+    return spawn(si.p, si.n, offsets.error(si.p, si.shape), d, si.time, ray.wavelengths), delta & ok, albedo, normal
 
 
 def _trace_pass(scene, sensor, block, spp, seed, max_depth):
