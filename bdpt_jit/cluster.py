@@ -577,7 +577,7 @@ def _first_line(e):
 class ClusterRun:
     """The driver's loop: at most one chunk per free slot in flight (so that a stop request
     ends the scheduling), results added as they come (keyed by chunk index), a failure
-    turned into one ClusterError after the chunks in flight are cancelled."""
+    turned into one ClusterError (the chunks in flight then dropped, see ``collect``)."""
 
     def __init__(self, ray, job, chunks, options, slots):
         self.ray, self.job = ray, job
@@ -612,7 +612,10 @@ class ClusterRun:
             except self.ray.exceptions.TaskCancelledError:
                 continue
             except Exception as e:
-                self.cancel()
+                # The other chunks in flight are dropped, not cancelled: Ray 2.60's driver can abort
+                # ("Tried to complete task that was not pending") when a task that is failing is
+                # cancelled. They finish or fail on their own; their results are never read.
+                self.pending.clear()
                 raise ClusterError(f"{self.job.scene_file}: {describe_failure(self.ray, e, chunk)}") from None
             r['latency_s'] = time.perf_counter() - t_submit   # submitted to received, on the driver
             if self.total.add(r) and on_chunk is not None:

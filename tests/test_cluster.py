@@ -20,6 +20,7 @@ import pytest
 os.environ.setdefault('RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER', '0')
 os.environ.setdefault('RAY_USAGE_STATS_ENABLED', '0')
 ray = pytest.importorskip('ray')
+pytestmark = pytest.mark.xdist_group('ray')      # one local Ray instance: every test on one xdist worker
 
 from bdpt_jit import cli, cluster  # noqa: E402
 
@@ -59,7 +60,7 @@ TEXTURED = """<scene version="3.0.0">
 @pytest.fixture(scope='module')
 def ray_cluster():
     ray.init(address='local', num_cpus=2, include_dashboard=False, _node_ip_address='127.0.0.1',
-             log_to_driver=False, logging_level='ERROR')
+             log_to_driver=False, logging_level='ERROR', object_store_memory=256 << 20)
     try:
         assert [n['NodeManagerAddress'] for n in ray.nodes()] == ['127.0.0.1']
         yield ray
