@@ -4,16 +4,24 @@ is; a differentiable pass uses gradients.ADSampling, which makes the same decisi
 derivatives and attaches each edge's derivative (gradients.py). The Context holds the one a
 render uses (``ctx.sampling``), so the tracers never ask which kind of pass they are in."""
 
+import weakref
+
 import drjit as dr
 
 from . import connect
 
 
 class Sampling:
-    """Primal sampling for the Context ``ctx``."""
+    """Primal sampling for the Context ``ctx``. It holds the Context by a weak reference: the
+    Context holds it, and a cycle would leave the Context, with the scene and its Dr.Jit arrays,
+    to the cyclic garbage collector, which frees them at whatever allocation it runs, possibly
+    while another scene's kernels are traced. With the cycle, later renders in the same process
+    (Mitsuba's own ptracer among them) failed with virtual calls reaching base classes
+    ("Texture::sample_spectrum(): not implemented", "Endpoint::eval_direction(): not
+    implemented") in tests/test_coverage.py run alone; without it they pass."""
 
     def __init__(self, ctx):
-        self.ctx = ctx
+        self.ctx = weakref.proxy(ctx)
 
     def intersect(self, ray, active, primary=False):
         """scene.ray_intersect; hits on triangle meshes moved onto their triangle's plane

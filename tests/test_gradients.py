@@ -562,7 +562,8 @@ def test_edge_ratio_against_the_edge_factors_log_derivative(camera_side):
     nx.n = mi.Normal3f(*[float(c) for c in n_next])
     nx.sh_frame = mi.Frame3f(nx.n)
     nx.t = 1.0
-    r = ADSampling(Ctx()).edge_ratio(camera_side, Vertex(si, mi.BSDFPtr(bsdf), mi.Float(0.0)), nx,
+    ctx = Ctx()                     # (ADSampling holds its Context by a weak reference)
+    r = ADSampling(ctx).edge_ratio(camera_side, Vertex(si, mi.BSDFPtr(bsdf), mi.Float(0.0)), nx,
                                      mi.Vector3f(0, 1, 0), None, None, mi.Bool(True))
     dr.forward_from(t)
     got = np.array(dr.grad(r))[0]
