@@ -2,7 +2,8 @@
 # Run the test suite (the CI subset), installing what is missing first.
 # Extra arguments go to pytest, e.g. `scripts/test.sh -m slow` for the long statistical runs.
 # BDPT_TEST_WORKERS=N runs N pytest-xdist workers (default: one process): a cold run with two
-# workers took 22 min on 2 busy cores, no faster than one process. (Its failures then,
+# workers took 22 min on 2 cores shared with other jobs, not measured side by side with one
+# process (20 min quiet, 31 min loaded before this session). (Its failures then,
 # "Texture::sample_spectrum(): not implemented", were the Context cycle fixed in 08aa4e8.)
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
