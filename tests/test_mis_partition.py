@@ -201,40 +201,26 @@ def recursive(kind, technique, P, chains=False):
 
     mis.set_radius(F(P['eta']))
 
+    # The subpaths' MIS quantities through the kernels' own event functions (mis.MIS.light_start,
+    # camera_start, scatter, hit): each of eqs. 20-22 is then checked where the kernels apply it.
     def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
-        d_vc = mis.light_init(pdf_emit_w, F(cos_e0), B(np.full(M, delta)))
-        d_vm = mis.vm_init_light(d_vc)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
         p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
-        d_vcm, d_vc = mis.light_first_hit(d_vc, pdf_emit_w, F(p_direct), F(d2_0), F(cosB[:, 0]))
-        d_vm = mis.vm_on_hit(d_vm, F(cosB[:, 0]))
-        pend_vc = pend_vm = F(np.zeros(M))
+        st = mis.light_start(pdf_emit_w, F(cos_e0), B(np.full(M, delta)), F(p_direct), F(d2_0), F(cosB[:, 0]))
         for i in range(1, last):
-            args = (F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]))
-            if mis.pending:                                  # the merge at x_{i-1} counts if x_i is delta
-                d_vc, d_vm = mis.absorb_pending(d_vc, d_vm, pend_vc, pend_vm, B(delta_v[:, i]))
-                pend_vc, pend_vm = mis.pending_after_scatter(F(cosA[:, i]), F(pL[:, i]), B(delta_v[:, i]))
-            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args, merge_here=not mis.pending)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, merge_here=not mis.pending)
-            d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i]), F(cosB[:, i]))
-            d_vm = mis.vm_on_hit(d_vm, F(cosB[:, i]))
-            pend_vc, pend_vm = mis.vm_on_hit(pend_vc, F(cosB[:, i])), mis.vm_on_hit(pend_vm, F(cosB[:, i]))
-        return d_vcm, d_vc, d_vm
+            st = mis.scatter(st, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]), camera_side=False)
+            st = mis.hit(st, F(d2[:, i]), F(cosB[:, i]), camera_side=False)
+        return st.d_vcm, st.d_vc, st.d_vm
 
     def camera_state(last):                                  # at x_last (last <= k-1): (d_vcm, d_vc, d_vm)
-        d_vcm, d_vc = mis.camera_init(F(P['p_cam_w']))
-        d_vm = F(np.zeros(M))
-        d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, k - 1]), F(cosA[:, k - 1]))
-        d_vm = mis.vm_on_hit(d_vm, F(cosA[:, k - 1]))
+        st = mis.camera_start(F(P['p_cam_w']), F(d2[:, k - 1]), F(cosA[:, k - 1]))
         for i in range(k - 1, last, -1):
-            args = (F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]))
             here = mis.merge_here_camera(B(delta_v[:, i + 1]))   # the camera (x_k) is not delta
-            d_vm = mis.vm_on_scatter(d_vm, d_vcm, *args, merge_here=here)
-            d_vcm, d_vc = mis.on_scatter(d_vcm, d_vc, *args, camera_side=True, merge_here=here)
+            st = mis.scatter(st, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]),
+                             camera_side=True, merge_here=here)
             if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
-                d_vcm, d_vc = mis.on_hit(d_vcm, d_vc, F(d2[:, i - 1]), F(cosA[:, i - 1]))
-                d_vm = mis.vm_on_hit(d_vm, F(cosA[:, i - 1]))
-        return d_vcm, d_vc, d_vm
+                st = mis.hit(st, F(d2[:, i - 1]), F(cosA[:, i - 1]), camera_side=True)
+        return st.d_vcm, st.d_vc, st.d_vm
 
     out = []
     for s in range(k + 1):
