@@ -176,6 +176,13 @@ def brute_force(kind, technique, P, p_lens=None, chains=False):
     return np.where(total > 0, hp / np.where(total > 0, total, 1.0), 0.0)
 
 
+def aligned(cls, a, dtype):
+    """``a`` as a Dr.Jit array in memory of Dr.Jit's own (64-byte aligned). An array made from
+    numpy reads numpy's buffer, whose alignment enters the kernel's code: the same weights then
+    compile again in every test (a kernel-cache miss per evaluation, 0.25 s per test)."""
+    return cls(np.broadcast_to(np.asarray(a, dtype=dtype), (M,)).tolist())
+
+
 def recursive(kind, technique, P, chains=False):
     everywhere = technique == 'vcm_all'
     technique = 'vcm' if everywhere else technique
@@ -183,8 +190,8 @@ def recursive(kind, technique, P, chains=False):
     reachable = P.get('camera') != 'delta'
     mis = MIS(kind, StrategySet(technique, camera_reachable=reachable), camera_chains=chains,
               merge_everywhere=everywhere)
-    F = lambda a: mi.Float(np.asarray(a, dtype=np.float64))   # noqa: E731
-    B = lambda a: mi.Bool(np.asarray(a, dtype=bool))          # noqa: E731
+    F = lambda a: aligned(mi.Float, a, np.float64)           # noqa: E731
+    B = lambda a: aligned(mi.Bool, a, bool)                   # noqa: E731
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))
     ek = P['emitter']
     infinite = ek in ('delta_dir', 'env')
