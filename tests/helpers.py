@@ -4,6 +4,7 @@ A render's error is estimated from K independent batches (different seeds): the 
 spread gives the variance of their average without assuming anything about the per-sample
 distribution, and works for light-image splats, which cross pixels."""
 
+import fcntl
 import hashlib
 import os
 
@@ -44,11 +45,17 @@ def cached_reference(key_parts, make):
     path = os.path.join(CACHE, key + '.npy')
     if os.path.exists(path):
         return np.load(path)
-    arr = make()
     os.makedirs(CACHE, exist_ok=True)
-    tmp = path + f'.{os.getpid()}.tmp.npy'
-    np.save(tmp, arr)
-    os.replace(tmp, path)
+    # pytest-xdist workers (scripts/test.sh with BDPT_TEST_WORKERS) that need the same reference
+    # wait for the one rendering it instead of rendering it again
+    with open(path + '.lock', 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if os.path.exists(path):
+            return np.load(path)
+        arr = make()
+        tmp = path + f'.{os.getpid()}.tmp.npy'
+        np.save(tmp, arr)
+        os.replace(tmp, path)
     return arr
 
 
