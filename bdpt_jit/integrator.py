@@ -17,6 +17,7 @@ from . import params as P
 from .camera_path import CameraTracer
 from .context import Context
 from .film import FilmAccumulator
+from .light_cache import PILOT_PASS, LightCache, counts as cache_counts, pilot
 from .light_path import LightTracer
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
@@ -50,6 +51,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.merge_iteration = 0        # vcm, vm: iterations (samples per pixel) so far, over every render (merge.py)
         self.last_merge_radius = None   # the last pass's merging radius (world units)
         self.last_render_info = {}
+        self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -60,7 +62,18 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         return light_capacity(ctx.strategies, ctx.max_depth_edges, ctx.unbounded)
 
     def bytes_per_sample(self, ctx: Context) -> int:
-        return BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
+        ratio = ctx.light_cache.ratio if ctx.light_cache is not None else 1.0   # light subpaths a sample
+        return BYTES_PER_SAMPLE + int(BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx) * ratio)
+
+    def start_cache(self, ctx, seed):
+        """The light vertex cache's pilot (light_cache.pilot) and the connections c it implies
+        (parameter connections -1: the pilot's vertices per light subpath, rounded, at least 1)."""
+        if ctx.light_cache is None:
+            self.cache_run = None
+            return
+        vpp = pilot(self, ctx, seed, 1 << 30) if ctx.strategies.trace_connect else 0.0
+        c = ctx.light_cache.connections
+        self.cache_run = (vpp, c if c > 0 else max(1, int(round(vpp))))
 
     # ------------------------------------------------------------------ render
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -73,6 +86,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if spp == 0:
             spp = sensor.sampler().sample_count()
         ctx = self.make_context(scene, sensor, spp)
+        self.start_cache(ctx, seed)
         acc = FilmAccumulator(sensor.film(), ctx.aov_names)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
@@ -115,7 +129,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps = self.pass_state(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
-            ps.store = LightStore(n=ps.n, capacity=cap, record=ctx.record) if cap > 0 else None
+            ps.store = LightStore(n=ps.n_light, capacity=cap, record=ctx.record) if cap > 0 else None
             LightTracer(ctx, ps).trace()
             # Evaluate what the light subpaths leave to the camera pass (the sampler's state, the
             # stored vertices' counts): left symbolic, the camera kernel would trace every light
@@ -126,6 +140,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 if ps.store is not None:
                     dr.schedule(ps.store.count)
                 dr.eval()
+            if ctx.light_cache is not None and ctx.strategies.trace_connect and ps.store is not None:
+                ps.cache = LightCache(ps.store, self.cache_run[1])
         if ctx.strategies.trace_merge:
             ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last
@@ -166,7 +182,21 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
         ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
+        if ctx.light_cache is not None:
+            self.cache_pass_state(ctx, ps, seed, i, pixel_count)
         return ps
+
+    def cache_pass_state(self, ctx, ps, seed, i, pixel_count):
+        """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
+        their own sampler, the splats' scale 1/spp times n / n_L, the MIS counts."""
+        n_light = ctx.light_cache.light_paths(ps.spp_pass, pixel_count)
+        ps.n_light = n_light
+        ps.light_sampler = ctx.sensor.sampler().clone()
+        ps.light_sampler.set_sample_count(ps.spp_pass)
+        ps.light_sampler.seed(pass_seed(seed, PILOT_PASS + 1 + i), n_light)
+        ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
+        vpp, c = self.cache_run
+        ps.mis = ctx.mis.for_pass(None, cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect))
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {
@@ -184,6 +214,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
+        if ctx.light_cache is not None:
+            vpp, c = self.cache_run
+            info['light_cache'] = {'light_paths_per_sample': ctx.light_cache.ratio, 'connections': c,
+                                   'pilot_vertices_per_path': vpp}
         if ctx.strategies.trace_merge:
             info['merge_iteration'] = self.merge_iteration
             info['merge_radius'] = self.last_merge_radius
