@@ -13,9 +13,12 @@ the sample counts in the MIS weights (mis.py, [Veach 9.2.2] n_i p_i).
 import mitsuba as mi
 import numpy as np
 import pytest
+from scipy import stats
 
 import test_mis_partition as tmp
-from bdpt_jit.strategies import StrategySet
+from helpers import agreement, file_reference, load_scene, no_delta_mask, render_batches
+from test_agreement import BATCHES, REF_SEED, RES
+from test_analytic import LE, sphere_scene
 
 
 def random_counts(rng):
@@ -30,9 +33,9 @@ def random_counts(rng):
 
 @pytest.mark.parametrize('camera', ['pinhole', 'thinlens', 'delta'])
 @pytest.mark.parametrize('emitter', tmp.KINDS)
-@pytest.mark.parametrize('technique', ['bdpt', 'lt', 'vcm', 'vcm_all'])
+@pytest.mark.parametrize('technique', ['bdpt', 'lt', 'vcm_all'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
-@pytest.mark.parametrize('k', [1, 2, 3, 4, 6, 9])
+@pytest.mark.parametrize('k', [1, 3, 6])
 def test_partition_of_unity_with_counts(k, kind, technique, emitter, camera):
     """Random paths, random (n_L, c, merge density eta): the recursive weights equal the brute
     force h(n_s p_s) / sum_j h(n_j p_j) and sum to one wherever a strategy samples the path."""
@@ -66,3 +69,155 @@ def test_counts_matter():
     assert not np.allclose(w_rec, tmp.brute_force('power', 'bdpt', P), rtol=1e-3)
     w_1pct = tmp.recursive('power', 'bdpt', P, counts=(counts[0] * 1.01, counts[1]))
     assert not np.allclose(w_1pct, tmp.brute_force('power', 'bdpt', P, counts=counts), rtol=1e-3)
+
+
+@pytest.mark.parametrize('k', [2, 5])
+@pytest.mark.parametrize('technique', ['bdpt', 'vcm_all'])
+def test_partition_of_unity_with_counts_and_delta_vertices(k, technique):
+    """Merges with counts: merge_everywhere with delta vertices (the pending terms)."""
+    rng = np.random.default_rng(60_000 + k)
+    P = tmp.random_paths(rng, k, delta_prob=0.5)
+    P['camera'] = 'pinhole'
+    counts = random_counts(rng)
+    np.testing.assert_allclose(tmp.recursive('power', technique, P, counts=counts),
+                               tmp.brute_force('power', technique, P, counts=counts), rtol=1e-5, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------- parameters
+@pytest.mark.parametrize('params,needle', [
+    ({'connections': -3}, "'connections' must be >= -1"),
+    ({'light_paths': 1.0, 'connections': 0}, "'connections' must be -1 (automatic) or >= 1"),
+    ({'light_paths': 0}, "'light_paths' must be -1 (the classic estimator) or > 0"),
+    ({'light_paths': -0.5}, "'light_paths' must be -1"),
+    ({'connections': 2}, "'connections' (2) needs the light vertex cache"),
+    ({'light_paths': 1.0, 'technique': 'vcm'}, "'light_paths' needs technique bdpt or lt"),
+    ({'light_paths': 1.0, 'technique': 'pt'}, "'light_paths' needs technique bdpt or lt"),
+])
+def test_bad_parameters_name_the_parameter(params, needle):
+    with pytest.raises(Exception) as e:
+        mi.load_dict({'type': 'bdpt', **params})
+    assert needle in str(e.value)
+
+
+# ---------------------------------------------------------------------------- renders
+# (light_paths, connections): n_L = 1/4 and 2 light subpaths per camera sample, c = 1 and 4
+CONFIGS = [(0.25, 1), (2.0, 4)]
+
+
+def layer_means(scene, props, spp, batches, seed0=0):
+    """{layer: per-batch image means of its unweighted image}, the batches' images (K, H, W, 3);
+    every batch checked: finite pixels, the weighted layers summing to the image."""
+    integ = mi.load_dict(props)
+    out, imgs = {}, []
+    for b in range(batches):
+        img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed0 + b), dtype=np.float64)[:, :, :3]
+        assert np.all(np.isfinite(img)), f'batch {b}: non-finite pixels'
+        layers = integ.strategy_images
+        total = sum(v['weighted'] for v in layers.values())
+        np.testing.assert_allclose(total, img, rtol=1e-4, atol=1e-5 * img.max())
+        for name, v in layers.items():
+            assert np.all(np.isfinite(v['unweighted']))
+            out.setdefault(name, []).append(v['unweighted'].mean())
+        imgs.append(img)
+    return {k: np.array(v) for k, v in out.items()}, np.stack(imgs)
+
+
+def strategy_of(name):
+    s, t = name.split('_')
+    return int(s[1:]), int(t[1:])
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+def test_closed_sphere_layers_are_analytic(light_paths, connections):
+    """Inside the closed emitting sphere (test_analytic) each (s,t) strategy alone, its unweighted
+    layer, estimates Le rho^(s+t-2): connections, splats and the camera-side strategies with the
+    cache, and the image Le sum rho^k. The connections' layers pooled are measured to 0.15%, so
+    a count factor 1% off in the connection estimator (V / (c n_L)) is over 6 sigma away."""
+    rho, max_depth, K = 0.5, 5, 16
+    means, imgs = layer_means(sphere_scene(rho), {'type': 'bdpt', 'max_depth': max_depth, 'strategy_images': True,
+                                                  'light_paths': light_paths, 'connections': connections},
+                              128, K)
+    per_batch = imgs.mean(axis=(1, 2, 3))
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    se = per_batch.std(ddof=1) / np.sqrt(K)
+    assert abs(per_batch.mean() - expected) <= 4 * se + 1e-6, f'image {per_batch.mean()} vs {expected} (se {se})'
+    # the layers the cache changes: connections (s >= 2, t >= 2) and splats (t = 1); the camera
+    # side's hits and emitter sampling are the classic estimator's (measured here, the classic's
+    # emitter sampling alone is 0.998 of analytic in this mesh sphere: s1_t2..s1_t4 at -1.4 to
+    # -1.9 sigma each, 16 x 128 spp; left to an issue of its own)
+    tested = {n: v for n, v in means.items() if n != 'other' and np.ptp(v) > 0
+              and (strategy_of(n)[0] >= 2 or strategy_of(n)[1] == 1)}
+    thr = 1 - 0.99 ** (1 / len(tested))
+    pooled = []
+    for name, v in tested.items():
+        s, t = strategy_of(name)
+        ratio = v / (LE * rho ** (s + t - 2))
+        p = 2 * stats.t.sf(abs(ratio.mean() - 1) / (ratio.std(ddof=1) / np.sqrt(K)), K - 1)
+        assert p >= thr, f'{name}: {ratio.mean():.5f} of Le rho^{s + t - 2} (p {p:.3g} < {thr:.3g})'
+        if s >= 2 and t >= 2:
+            pooled.append(ratio)
+    pooled = np.mean(pooled, axis=0)
+    se = pooled.std(ddof=1) / np.sqrt(K)
+    assert se < 0.0015, f'the connections pooled: se {se:.4f}, too wide to see a 1% count factor'
+    assert abs(pooled.mean() - 1) <= 4 * se, f'connections pooled: {pooled.mean():.5f} of analytic (se {se:.5f})'
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+def test_cornell_layers_agree_with_the_classic_estimator(light_paths, connections):
+    """Every (s,t) strategy's unweighted layer (its estimate alone, summed over the image) with
+    the cache agrees with the classic estimator's (Welch, Sidak over the layers at 0.01); the
+    emitter seen through light tracing (s1_t1) is measured to 0.1% in both, so a splat scale 1%
+    off (n / n_L) is far outside."""
+    scene = load_scene('cornell-box.xml', RES, 4)
+    base = {'type': 'bdpt', 'max_depth': 4, 'strategy_images': True}
+    ref, _ = layer_means(scene, base, 16, BATCHES, seed0=REF_SEED)
+    mine, _ = layer_means(scene, {**base, 'light_paths': light_paths, 'connections': connections}, 16, BATCHES)
+    names = [n for n in ref if n != 'other' and (np.ptp(ref[n]) > 0 or np.ptp(mine[n]) > 0)]
+    thr = 1 - 0.99 ** (1 / len(names))
+    for name in names:
+        a, b = ref[name], mine[name]
+        se = np.sqrt(a.var(ddof=1) / BATCHES + b.var(ddof=1) / BATCHES)
+        p = 2 * stats.norm.sf(abs(a.mean() - b.mean()) / se)
+        assert p >= thr, f'{name}: cache {b.mean():.6g} vs classic {a.mean():.6g} (se {se:.3g}, p {p:.3g})'
+    s1t1 = mine['s1_t1']
+    assert s1t1.std(ddof=1) / np.sqrt(BATCHES) < 0.001 * s1t1.mean()
+
+
+AGREEMENT = [('cornell-box.xml', 5), ('caustic.xml', 5)]
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+@pytest.mark.parametrize('name,max_depth', AGREEMENT)
+def test_agrees_with_mitsuba(name, max_depth, light_paths, connections):
+    """Block by block and per pixel against the references of tests/test_agreement.py (ptracer
+    where no delta surface is seen, path elsewhere; the same cached batches)."""
+    scene = load_scene(name, RES, max_depth)
+    mask_lt = no_delta_mask(scene)
+    ref_pt = file_reference(name, RES, max_depth, 'ptracer', 1024, BATCHES, REF_SEED)
+    ref_path = file_reference(name, RES, max_depth, 'path', 1024, BATCHES, REF_SEED)
+    ref = np.where(mask_lt[None, :, :, None], ref_pt, ref_path)
+    mine = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': light_paths,
+                                  'connections': connections}, 64, BATCHES)
+    ok, msg = agreement(mine, ref, alpha=0.01)
+    assert ok, f'{name} max_depth={max_depth} light_paths={light_paths} connections={connections}: {msg}'
+
+
+def test_light_tracing_with_the_cache_is_analytic():
+    """technique lt with n_L = 1/2 per camera sample inside the closed sphere: Le sum rho^k."""
+    rho, max_depth, K = 0.5, 3, 16
+    b = render_batches(sphere_scene(rho), {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'lt',
+                                           'light_paths': 0.5}, 64, K)
+    per_batch = b.mean(axis=(1, 2, 3))
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    se = per_batch.std(ddof=1) / np.sqrt(K)
+    assert abs(per_batch.mean() - expected) <= 4 * se, f'{per_batch.mean()} vs {expected} (se {se})'
+
+
+def test_render_info_reports_the_cache():
+    scene = load_scene('cornell-box.xml', 8, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'light_paths': 0.5})
+    mi.render(scene, integrator=integ, spp=2)
+    info = integ.last_render_info['light_cache']
+    assert info['light_paths_per_sample'] == 0.5
+    assert info['connections'] == max(1, round(info['pilot_vertices_per_path']))
+    assert 0 < info['pilot_vertices_per_path'] <= 2          # max_depth 4: y1, y2 stored
