@@ -29,7 +29,7 @@ import mitsuba as mi
 
 from .passes import pass_seed
 
-PILOT_PATHS = 1 << 15           # light subpaths of the pilot pass (at most the pass's n_L)
+PILOT_PATHS = 1 << 13           # light subpaths of the pilot pass: V / n_L to ~1% (it only sets MIS counts)
 PILOT_PASS = 1 << 24            # the pilot's pass index for pass_seed: no render has that many
 
 

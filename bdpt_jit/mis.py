@@ -32,6 +32,13 @@ Conventions for the strategies (s light vertices, t camera vertices, endpoints c
   is why the light subpath evaluates it at its first hit;
 - s=1, t=1 splats the light subpath's first vertex y0 (its density: emission position).
 - Russian roulette is left out of all densities (a valid choice: the weights still sum to 1).
+- Sample counts [Veach 9.2.2] (n_i p_i; the light vertex cache, light_cache.py, ``set_counts``):
+  hits and emitter sampling count 1, connections n_c = c n_L / V (c draws from V cached vertices
+  of n_L light subpaths per camera vertex), light tracing n_lt = n_L / n (n camera samples), merges
+  eta. Without the cache both are 1 and nothing of them is traced. Each scatter's new d_vcm holds
+  h(n_c) (the strategy ending the light subpath there is a connection), the camera's start h(n_lt);
+  weight_s0 takes n_c back out where its s=1 term is emitter sampling, and the weights of a
+  connection and a splat divide the others' sum by their own count.
 
 Vertex merging (technique ``vcm``) adds one strategy per non-delta interior vertex: the camera
 vertex merged with a light vertex of any light subpath of the pass within the radius r

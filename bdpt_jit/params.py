@@ -75,7 +75,7 @@ PARAMS = (
           'their vertices form one cache that every camera vertex draws `connections` vertices from, '
           'and every sample counts in the MIS weights (Veach 9.2.2: n_i p_i). -1: the classic '
           'estimator, one light subpath per camera sample connected to that sample\'s own vertices. '
-          '`technique` bdpt or lt, RGB and monochrome variants, no derivatives ([docs/light-cache.md](docs/light-cache.md)).',
+          '`technique` bdpt or lt, RGB and monochrome variants, no derivatives (docs/light-cache.md).',
           minimum=-1.0),
     Param('connections', int, -1,
           'With the light vertex cache (`light_paths` > 0): light vertices each camera vertex is '
