@@ -190,7 +190,7 @@ class CameraTracer:
         L = mi.Spectrum(0.0)
         j = mi.UInt32(0)
         while dr.hint(active & (j < cache.c), label='bdpt_connect_cache'):
-            slot, level, ok = cache.draw(sampler.next_1d(), active)
+            slot, level, ok = cache.draw((sampler.next_1d(), sampler.next_1d()), active)
             L += self.strategy_st(slot, level, v, sub, ok, merge_z, cache.scale)
             j += 1
         return L

@@ -173,30 +173,35 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 # vertex's wavelengths
                 u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
+        # light subpaths: one per camera sample, or the cache's n_L (whole ones per iteration)
+        n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None else n
         schedule, eta = None, None
         if ctx.strategies.trace_merge:
             s = self.settings
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
-                                     spp_pass, pixel_count)
+                                     spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
         ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if ctx.light_cache is not None:
-            self.cache_pass_state(ctx, ps, seed, i, pixel_count)
+            self.cache_pass_state(ctx, ps, seed, i, n_light, eta)
         return ps
 
-    def cache_pass_state(self, ctx, ps, seed, i, pixel_count):
+    def cache_pass_state(self, ctx, ps, seed, i, n_light, eta):
         """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
-        their own sampler, the splats' scale 1/spp times n / n_L, the MIS counts."""
-        n_light = ctx.light_cache.light_paths(ps.spp_pass, pixel_count)
+        their own sampler, the splats' scale 1/spp times n / n_L, the MIS counts (merges: the
+        camera samples' ``eta``, and the light subpaths' of their iterations in ``mis_light``)."""
         ps.n_light = n_light
         ps.light_sampler = ctx.sensor.sampler().clone()
         ps.light_sampler.set_sample_count(ps.spp_pass)
         ps.light_sampler.seed(pass_seed(seed, PILOT_PASS + 1 + i), n_light)
         ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
         vpp, c = self.cache_run
-        ps.mis = ctx.mis.for_pass(None, cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect))
+        counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
+        ps.mis = ctx.mis.for_pass(eta, counts)
+        eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light)) if eta is not None else None
+        ps.mis_light = ctx.mis.for_pass(eta_light, counts)
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {

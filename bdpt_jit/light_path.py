@@ -18,7 +18,7 @@ class LightTracer:
 
     def __init__(self, ctx, ps):
         self.ctx, self.ps = ctx, ps
-        self.mis = ps.mis
+        self.mis = ps.mis_light if ps.mis_light is not None else ps.mis
         # spectral variants: the wavelengths' sampling weight. It enters the splats (t=1) only:
         # the camera subpath of the same sample carries it already, and a connection multiplies
         # both throughputs

@@ -75,7 +75,7 @@ PARAMS = (
           'their vertices form one cache that every camera vertex draws `connections` vertices from, '
           'and every sample counts in the MIS weights (Veach 9.2.2: n_i p_i). -1: the classic '
           'estimator, one light subpath per camera sample connected to that sample\'s own vertices. '
-          '`technique` bdpt or lt, RGB and monochrome variants, no derivatives (docs/light-cache.md).',
+          '`technique` bdpt, lt or vcm (merging with the n_L subpaths of each iteration), RGB and monochrome variants, no derivatives (docs/light-cache.md).',
           minimum=-1.0),
     Param('connections', int, -1,
           'With the light vertex cache (`light_paths` > 0): light vertices each camera vertex is '
@@ -185,9 +185,9 @@ def check_light_cache(out):
         raise ParameterError(f"bdpt: parameter 'connections' ({c}) needs the light vertex cache: set "
                              "light_paths > 0 (the classic estimator connects to all vertices of the "
                              "sample's own light subpath)")
-    if n_l != -1.0 and tech not in ('bdpt', 'lt'):
-        raise ParameterError(f"bdpt: parameter 'light_paths' needs technique bdpt or lt, not {tech!r} "
-                             "(pt traces no light subpaths; merging with the cache is not implemented)")
+    if n_l != -1.0 and tech not in ('bdpt', 'lt', 'vcm'):
+        raise ParameterError(f"bdpt: parameter 'light_paths' needs technique bdpt, lt or vcm, not {tech!r} "
+                             "(pt traces no light subpaths; vm with the cache is not implemented)")
 
 
 AOV_TYPES = {'depth': 'T', 'position': 'XYZ', 'uv': 'UV', 'geo_normal': 'XYZ', 'sh_normal': 'XYZ',

@@ -129,6 +129,8 @@ class PassState:
         self.splat_scale = None         # the light image's scale per splat, or None: the Context's
         self.cache = None               # light_cache.LightCache of the pass, or None (classic)
         self.pilot = False              # light_cache.pilot: a light pass that only counts vertices
+        self.mis_light = None           # the light subpaths' mis.MIS where it is not ``mis`` (the cache
+        #                                 with merges: each light subpath's own iteration's eta)
 
 
 class RenderHooks:

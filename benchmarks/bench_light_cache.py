@@ -15,6 +15,7 @@ reaches. The scene file takes ``$res`` or ``$resx``/``$resy`` and ``$max_depth``
 import argparse
 import hashlib
 import os
+import re
 import time
 
 import drjit as dr
@@ -26,7 +27,7 @@ def load(path, res, max_depth, integrator):
     """The scene at res x res (whichever of $res, $resx/$resy it takes), with ``integrator``."""
     params = dict(res=res, resx=res, resy=res, max_depth=max_depth)
     text = open(path).read()
-    kw = {k: v for k, v in params.items() if f'${k}' in text}
+    kw = {k: v for k, v in params.items() if re.search(r'\$' + k + r'\b', text)}
     scene = mi.load_file(path, **kw)
     return scene, mi.load_dict(integrator)
 

@@ -90,8 +90,8 @@ def test_partition_of_unity_with_counts_and_delta_vertices(k, technique):
     ({'light_paths': 0}, "'light_paths' must be -1 (the classic estimator) or > 0"),
     ({'light_paths': -0.5}, "'light_paths' must be -1"),
     ({'connections': 2}, "'connections' (2) needs the light vertex cache"),
-    ({'light_paths': 1.0, 'technique': 'vcm'}, "'light_paths' needs technique bdpt or lt"),
-    ({'light_paths': 1.0, 'technique': 'pt'}, "'light_paths' needs technique bdpt or lt"),
+    ({'light_paths': 1.0, 'technique': 'vm'}, "'light_paths' needs technique bdpt, lt or vcm"),
+    ({'light_paths': 1.0, 'technique': 'pt'}, "'light_paths' needs technique bdpt, lt or vcm"),
 ])
 def test_bad_parameters_name_the_parameter(params, needle):
     with pytest.raises(Exception) as e:
@@ -221,3 +221,50 @@ def test_render_info_reports_the_cache():
     assert info['light_paths_per_sample'] == 0.5
     assert info['connections'] == max(1, round(info['pilot_vertices_per_path']))
     assert 0 < info['pilot_vertices_per_path'] <= 2          # max_depth 4: y1, y2 stored
+
+
+@pytest.mark.parametrize('light_paths,connections', [(0.5, 2), (2.0, 1)])
+def test_vcm_caustic_through_glass_with_the_cache(light_paths, connections):
+    """Merges with n_L light subpaths a pass (test_merging's caustic through a glass sheet, which
+    only merges render): the image mean after 16 iterations in one pass equals the blurred
+    analytic value within 4 standard errors; the merge's normalisation 1 / (pi r^2 N) takes N =
+    n_L / spp_pass, and a wrong N (the pixel count) would be off by the factor light_paths."""
+    import test_merging as tm
+    scene = tm.plane_scene(sheet=True)
+    r1, K, spp = 0.8, 8, 16
+    rel = r1 / tm.scene_radius(scene)
+    means = []
+    for k in range(K):
+        integ = mi.load_dict({'type': 'bdpt', 'technique': 'vcm', 'max_depth': 4, 'radius': rel,
+                              'radius_alpha': 0.5, 'light_paths': light_paths, 'connections': connections})
+        img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=300 + k))
+        assert np.all(np.isfinite(img))
+        means.append(float(np.mean(img)))
+    got, se = np.mean(means), np.std(means, ddof=1) / np.sqrt(K)
+    t_cam = float(tm.sheet_transmittance(np.array([1.0]))[0])
+    want = t_cam * tm.expected_mean([r1 * i ** -0.25 for i in range(1, spp + 1)], tm.through_sheet)
+    assert abs(got - want) < 4 * se, f'{got:.5f} +- {se:.5f}, expected {want:.5f}'
+
+
+def test_vcm_closed_sphere_with_the_cache():
+    """Merging everywhere inside the closed emitting sphere (test_merging.test_closed_sphere: a
+    merge is exact there, eta = pi r^2 N ~ 8 carries much weight): Le sum rho^k with the cache."""
+    from test_analytic import sphere_mesh
+    from bdpt_jit.merge import scene_radius
+    rho, max_depth = 0.8, 4
+    scene = mi.load_dict({
+        'type': 'scene',
+        'sensor': {'type': 'perspective', 'fov': 60,
+                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
+                            'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent'}},
+        'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
+    })
+    b = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'radius': 0.05 / scene_radius(scene),
+                               'radius_alpha': 1.0, 'merge_everywhere': True, 'light_paths': 0.5,
+                               'connections': 2}, spp=16, batches=16)
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    per_batch = b.mean(axis=(1, 2, 3))
+    mean, sigma = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))
+    assert abs(mean - expected) <= 4 * sigma, f'{mean} vs {expected} (sigma {sigma})'
