@@ -56,7 +56,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
         check_scene(scene, sensor)
-        return Context(scene, sensor, self.settings, spp)
+        settings = self.settings
+        if settings['technique'] == 'auto':       # its candidates are bdpt's configurations
+            settings = {**settings, 'technique': 'bdpt'}
+        return Context(scene, sensor, settings, spp)
 
     def light_capacity(self, ctx: Context) -> int:
         return light_capacity(ctx.strategies, ctx.max_depth_edges, ctx.unbounded)
@@ -65,13 +68,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ratio = ctx.light_cache.ratio if ctx.light_cache is not None else 1.0   # light subpaths a sample
         return BYTES_PER_SAMPLE + int(BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx) * ratio)
 
-    def start_cache(self, ctx, seed):
-        """The light vertex cache's pilot (light_cache.pilot) and the connections c it implies
-        (parameter connections -1: the pilot's vertices per light subpath, rounded, at least 1)."""
+    def start_cache(self, ctx, seed, light_paths):
+        """The light vertex cache's pilot (light_cache.pilot; at most the render's ``light_paths``)
+        and the connections c it implies (parameter connections -1: the pilot's vertices per light
+        subpath, rounded, at least 1)."""
         if ctx.light_cache is None:
             self.cache_run = None
             return
-        vpp = pilot(self, ctx, seed, 1 << 30) if ctx.strategies.trace_connect else 0.0
+        vpp = pilot(self, ctx, seed, light_paths) if ctx.strategies.trace_connect else 0.0
         c = ctx.light_cache.connections
         self.cache_run = (vpp, c if c > 0 else max(1, int(round(vpp))))
 
@@ -85,11 +89,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             sensor = scene.sensors()[sensor]
         if spp == 0:
             spp = sensor.sampler().sample_count()
+        if self.technique == 'auto':
+            return self.render_auto(scene, sensor, seed, spp, evaluate)
         ctx = self.make_context(scene, sensor, spp)
-        self.start_cache(ctx, seed)
         acc = FilmAccumulator(sensor.film(), ctx.aov_names)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
+        if ctx.light_cache is not None:
+            self.start_cache(ctx, seed, max(256, int(ctx.light_cache.ratio * spp * n_pixels)))
         t0 = _time.perf_counter()
         samples_done, interrupted, levels_used = self.run_passes(ctx, acc, seed, spp, n_pixels)
         # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
@@ -101,6 +108,26 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.strategy_images = ctx.layers.images(light_scale) if ctx.layers is not None else None
         self.last_render_info = self.render_info(ctx, spp, n_pixels, samples_done, interrupted, levels_used)
         self.last_render_info['time_s'] = _time.perf_counter() - t0
+        return image
+
+    def render_auto(self, scene, sensor, seed, spp, evaluate):
+        """technique 'auto' (auto.py): trial renders choose a configuration, which renders."""
+        from . import auto
+        base = {k: v for k, v in self.settings.items() if v is not None}
+
+        def make(settings):
+            return BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
+        t0 = _time.perf_counter()
+        best, trials = auto.choose(make, self.make_context(scene, sensor, spp), scene, sensor, seed)
+        trial_s = _time.perf_counter() - t0
+        chosen = make(best.settings)
+        chosen.hooks = self.hooks
+        chosen.merge_iteration = self.merge_iteration
+        image = chosen.render(scene, sensor, seed, spp, True, evaluate)
+        self.strategy_images = chosen.strategy_images
+        self.last_render_info = dict(chosen.last_render_info)
+        self.last_render_info['auto'] = {'chosen': best.name, 'trial_spp': auto.TRIAL_SPP, 'trial_s': trial_s,
+                                         'candidates': [tr.report() for tr in trials]}
         return image
 
     def run_passes(self, ctx, acc, seed, spp, n_pixels):
@@ -257,6 +284,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if spp == 0:
             spp = sensor.sampler().sample_count()
         check_scene(scene, sensor)
+        if self.technique == 'auto':
+            raise NotImplementedError("bdpt: technique 'auto' renders trial images first and has no "
+                                      "derivatives; differentiate with a technique of its own")
         if self.technique in ('vcm', 'vm'):
             raise NotImplementedError(
                 f"bdpt: technique '{self.technique}' (vertex merging) is not differentiable here: the "

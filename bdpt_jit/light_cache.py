@@ -89,7 +89,8 @@ def vertices_per_path(store, n):
 
 def pilot(integrator, ctx, seed, n_light):
     """Vertices a light subpath stores on average, from a pilot light pass of independent
-    samples (seed ``pass_seed(seed, PILOT_PASS)``, at most PILOT_PATHS subpaths, no splats)."""
+    samples (seed ``pass_seed(seed, PILOT_PASS)``, no splats) of ``n_light`` subpaths (the render's
+    light subpaths, at least 256), at most PILOT_PATHS."""
     from .light_path import LightTracer
     from .passes import PassState
     from .store import LightStore

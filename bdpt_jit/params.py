@@ -52,8 +52,11 @@ PARAMS = (
           '(all of bdpt plus vertex merging: Georgiev et al. 2012, renders caustics seen through '
           'glass), `vm` (vertex merging alone: progressive photon mapping, Hachisuka et al. 2008, '
           'merging at the first non-specular camera vertex). `vcm` and `vm` are consistent, not '
-          'unbiased: their bias vanishes as the merging radius shrinks over passes.',
-          choices=('bdpt', 'pt', 'lt', 'vcm', 'vm')),
+          'unbiased: their bias vanishes as the merging radius shrinks over passes. `auto`: the most '
+          'efficient of bdpt\'s configurations (the classic estimator and light vertex caches) by '
+          'trial renders before the render (docs/light-cache.md); the choice in '
+          '`last_render_info[\'auto\']`.',
+          choices=('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto')),
     Param('radius', float, 0.005,
           'Initial merging radius of `vcm` and `vm`, relative to the radius of the scene\'s bounding '
           'sphere (SmallVCM uses 0.003 at 512x512; a larger radius is less noisy and more biased).',
@@ -185,6 +188,9 @@ def check_light_cache(out):
         raise ParameterError(f"bdpt: parameter 'connections' ({c}) needs the light vertex cache: set "
                              "light_paths > 0 (the classic estimator connects to all vertices of the "
                              "sample's own light subpath)")
+    if tech == 'auto' and (n_l != -1.0 or c != -1):
+        raise ParameterError("bdpt: parameters 'light_paths' and 'connections' are chosen by technique "
+                             "'auto'; leave them at -1 or choose a technique")
     if n_l != -1.0 and tech not in ('bdpt', 'lt', 'vcm'):
         raise ParameterError(f"bdpt: parameter 'light_paths' needs technique bdpt, lt or vcm, not {tech!r} "
                              "(pt traces no light subpaths; vm with the cache is not implemented)")
