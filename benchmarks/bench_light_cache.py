@@ -8,7 +8,9 @@ relative MSE at equal time against a reference rendered by ``path`` (``--ref-int
 A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
 ``classic`` is bdpt's default estimator, ``pt`` its path tracing. Each contestant renders one
 warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
-passed; relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
+passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
+as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
+single run); relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
 error is part of every figure: give it many more samples (``--ref-spp``) than any contestant
 reaches. The scene file takes ``$res`` or ``$resx``/``$resy`` and ``$max_depth``."""
 
@@ -81,10 +83,15 @@ def measure(args, name, ref):
     t0 = time.perf_counter()
     dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
     warm = time.perf_counter() - t0
-    img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp)
-    rel = float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2)))
+    rels, spps, sps = [], [], []
+    for r in range(args.repeats):               # seeds of their own: 1000 r + batch
+        img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
+        rels.append(float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2))))
+        spps.append(spp)
+        sps.append(spp * args.res * args.res / secs)
     info = getattr(integ, 'last_render_info', {}).get('light_cache', {})
-    return dict(name=name, warm=warm, spp=spp, sps=spp * args.res * args.res / secs, relmse=rel, info=info)
+    return dict(name=name, warm=warm, spp=int(np.median(spps)), sps=float(np.median(sps)),
+                relmse=float(np.median(rels)), rels=rels, info=info)
 
 
 def main():
@@ -94,6 +101,8 @@ def main():
     ap.add_argument('--max-depth', type=int, default=10)
     ap.add_argument('--budget', type=float, default=8.0, help='seconds per contestant')
     ap.add_argument('--batch-spp', type=int, default=4)
+    ap.add_argument('--repeats', type=int, default=1,
+                    help='equal-time runs per contestant (seeds of their own); the median is reported')
     ap.add_argument('--ref-spp', type=int, default=4096)
     ap.add_argument('--ref-integrator', default='path',
                     help='configuration of the reference (classic where path cannot converge)')
@@ -109,11 +118,12 @@ def main():
           f'({time.perf_counter() - t0:.0f} s), budget {args.budget} s, {mi.variant()}, {os.cpu_count()} cores')
     rows = [measure(args, name, ref) for name in args.configs.split(',')]
     base = next((r for r in rows if r['name'] == 'path'), rows[0])
-    print('| configuration | M samples/s | /path | spp in budget | relMSE | relMSE / path | warm-up s | cache |')
-    print('|---|---|---|---|---|---|---|---|')
+    print('| configuration | M samples/s | /path | spp in budget | relMSE (median) | relMSE / path | runs | warm-up s | cache |')
+    print('|---|---|---|---|---|---|---|---|---|')
     for r in rows:
         print(f"| {r['name']} | {r['sps'] / 1e6:.3f} | {r['sps'] / base['sps']:.2f} | {r['spp']} | {r['relmse']:.4g} | "
-              f"{r['relmse'] / base['relmse']:.2f} | {r['warm']:.1f} | {r['info'] or ''} |")
+              f"{r['relmse'] / base['relmse']:.2f} | {' '.join(f'{x:.3g}' for x in r['rels'])} | {r['warm']:.1f} | "
+              f"{r['info'] or ''} |")
 
 
 if __name__ == '__main__':
