@@ -91,7 +91,7 @@ class CameraTracer:
         pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
                                  c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
         pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d, AreaKinds)
-        w = self.mis.weight_s0(sub.mis.d_vcm, sub.mis.d_vc, pdf_direct_a, pdf_emit_w)
+        w = self.mis.weight_s0(sub.mis.d_vcm, sub.mis.d_vc, pdf_direct_a, pdf_emit_w, first_hit=depth == 1)
         self.add_layer(0, depth + 1, sub.beta * le, w, hit_em)
         return dr.select(hit_em, sub.beta * le * w, 0.0)
 
@@ -135,9 +135,11 @@ class CameraTracer:
         self.add_layer(1, sub.depth + 1, value, w, active)
         return dr.select(active, value * w, 0.0)
 
-    def strategy_st(self, slot, level, v, sub, active, merge_z=True):
+    def strategy_st(self, slot, level, v, sub, active, merge_z=True, scale=None):
         """s>=2, t>=2: the camera vertex ``v`` connected to the stored light vertex ``slot``
-        (at ``level`` of the storage: needed by records that do not store the depth)."""
+        (at ``level`` of the storage: needed by records that do not store the depth).
+        ``scale``: the estimator's factor of a vertex drawn from the light vertex cache
+        (light_cache.LightCache.scale), or None (the sample's own light subpath)."""
         c, store = self.ctx, self.ps.store
         si = v.si
         rec = store.record.load(store.v, slot, active)
@@ -156,6 +158,8 @@ class CameraTracer:
         tr = visibility(c, v.spawn_to(c, y.p, y.si.n, y.err), ok)
         ok &= visible(tr)
         contrib = contrib * tr
+        if scale is not None:
+            contrib = contrib * scale
         w = self.mis.weight_connect(
             rec, sub.mis,
             pdf_w_to_a(pdf_c_w, dr.dot(y.si.n, d), dist2),
@@ -175,6 +179,19 @@ class CameraTracer:
         j = mi.UInt32(0)
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.strategy_st(slot_of(j, idx), j, v, sub, active, merge_z)
+            j += 1
+        return L
+
+    @dr.syntax
+    def connect_cache(self, v, sub, active, merge_z=True):
+        """Sum of the connections of camera vertex ``v`` to c vertices drawn uniformly from the
+        pass's light vertex cache (light_cache.py), each weighted by V / (c n_L)."""
+        cache, sampler = self.ps.cache, self.ps.sampler     # (named: the sampler is loop state)
+        L = mi.Spectrum(0.0)
+        j = mi.UInt32(0)
+        while dr.hint(active & (j < cache.c), label='bdpt_connect_cache'):
+            slot, level, ok = cache.draw((sampler.next_1d(), sampler.next_1d()), active)
+            L += self.strategy_st(slot, level, v, sub, ok, merge_z, cache.scale)
             j += 1
         return L
 
@@ -234,7 +251,9 @@ class CameraTracer:
         merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
         if c.strategies.trace_s1:
             L = L + self.strategy_s1(v, sub, smooth, merge_here)
-        if c.strategies.trace_connect:
+        if c.strategies.trace_connect and ps.cache is not None:
+            L = L + self.connect_cache(v, sub, smooth, merge_here)
+        elif c.strategies.trace_connect:
             L = L + self.connect_all(self.idx, v, sub, smooth, merge_here)
         if c.strategies.trace_merge:
             L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_here)

@@ -68,6 +68,7 @@ class Context:
     ad_geometry        the gradient-enabled shape parameters of a differentiable pass (their keys)
     sampling           sampling.Sampling, or gradients.ADSampling in a differentiable pass
     aovs, aov_names    the AOVs asked for (params.parse_aovs) and their film channels
+    light_cache        light_cache.CacheSettings, or None: the classic estimator (parameter light_paths)
     """
 
     def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=()):
@@ -117,7 +118,23 @@ class Context:
                        if settings['strategy_images'] else None)
         self.stats = RayStats() if settings['statistics'] else None
         self.sampling = ADSampling(self) if ad else Sampling(self)
+        self.light_cache = self.cache_settings(settings)
         self.evaluate_tables()
+
+    def cache_settings(self, settings):
+        """light_cache.CacheSettings of the parameters light_paths and connections, or None."""
+        ratio = float(settings.get('light_paths', -1.0))
+        if ratio == -1.0:
+            return None
+        if self.ad:
+            raise ParameterError("bdpt: parameter 'light_paths' (the light vertex cache) has no derivatives "
+                                 "here: differentiate with light_paths -1")
+        if mi.is_spectral:
+            raise ParameterError(f"bdpt: parameter 'light_paths' needs an RGB or monochrome variant, not "
+                                 f"'{mi.variant()}' (a cached vertex would meet camera vertices of other "
+                                 "wavelengths)")
+        from .light_cache import CacheSettings
+        return CacheSettings(ratio, int(settings.get('connections', -1)))
 
     def evaluate_tables(self):
         """Evaluate the tables' arrays now: left lazy, the first pass's kernels would compute

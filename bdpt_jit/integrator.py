@@ -17,6 +17,7 @@ from . import params as P
 from .camera_path import CameraTracer
 from .context import Context
 from .film import FilmAccumulator
+from .light_cache import PILOT_PASS, LightCache, counts as cache_counts, pilot
 from .light_path import LightTracer
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
@@ -50,17 +51,33 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.merge_iteration = 0        # vcm, vm: iterations (samples per pixel) so far, over every render (merge.py)
         self.last_merge_radius = None   # the last pass's merging radius (world units)
         self.last_render_info = {}
+        self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
         check_scene(scene, sensor)
-        return Context(scene, sensor, self.settings, spp)
+        settings = self.settings
+        if settings['technique'] == 'auto':       # its candidates are bdpt's configurations
+            settings = {**settings, 'technique': 'bdpt'}
+        return Context(scene, sensor, settings, spp)
 
     def light_capacity(self, ctx: Context) -> int:
         return light_capacity(ctx.strategies, ctx.max_depth_edges, ctx.unbounded)
 
     def bytes_per_sample(self, ctx: Context) -> int:
-        return BYTES_PER_SAMPLE + BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx)
+        ratio = ctx.light_cache.ratio if ctx.light_cache is not None else 1.0   # light subpaths a sample
+        return BYTES_PER_SAMPLE + int(BYTES_PER_LIGHT_VERTEX * self.light_capacity(ctx) * ratio)
+
+    def start_cache(self, ctx, seed, light_paths):
+        """The light vertex cache's pilot (light_cache.pilot; at most the render's ``light_paths``)
+        and the connections c it implies (parameter connections -1: the pilot's vertices per light
+        subpath, rounded, at least 1)."""
+        if ctx.light_cache is None:
+            self.cache_run = None
+            return
+        vpp = pilot(self, ctx, seed, light_paths) if ctx.strategies.trace_connect else 0.0
+        c = ctx.light_cache.connections
+        self.cache_run = (vpp, c if c > 0 else max(1, int(round(vpp))))
 
     # ------------------------------------------------------------------ render
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -72,10 +89,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             sensor = scene.sensors()[sensor]
         if spp == 0:
             spp = sensor.sampler().sample_count()
+        if self.technique == 'auto':
+            return self.render_auto(scene, sensor, seed, spp, evaluate)
         ctx = self.make_context(scene, sensor, spp)
         acc = FilmAccumulator(sensor.film(), ctx.aov_names)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
+        if ctx.light_cache is not None:
+            self.start_cache(ctx, seed, max(256, int(ctx.light_cache.ratio * spp * n_pixels)))
         t0 = _time.perf_counter()
         samples_done, interrupted, levels_used = self.run_passes(ctx, acc, seed, spp, n_pixels)
         # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
@@ -87,6 +108,26 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.strategy_images = ctx.layers.images(light_scale) if ctx.layers is not None else None
         self.last_render_info = self.render_info(ctx, spp, n_pixels, samples_done, interrupted, levels_used)
         self.last_render_info['time_s'] = _time.perf_counter() - t0
+        return image
+
+    def render_auto(self, scene, sensor, seed, spp, evaluate):
+        """technique 'auto' (auto.py): trial renders choose a configuration, which renders."""
+        from . import auto
+        base = {k: v for k, v in self.settings.items() if v is not None}
+
+        def make(settings):
+            return BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
+        t0 = _time.perf_counter()
+        best, trials = auto.choose(make, self.make_context(scene, sensor, spp), scene, sensor, seed)
+        trial_s = _time.perf_counter() - t0
+        chosen = make(best.settings)
+        chosen.hooks = self.hooks
+        chosen.merge_iteration = self.merge_iteration
+        image = chosen.render(scene, sensor, seed, spp, True, evaluate)
+        self.strategy_images = chosen.strategy_images
+        self.last_render_info = dict(chosen.last_render_info)
+        self.last_render_info['auto'] = {'chosen': best.name, 'trial_spp': auto.TRIAL_SPP, 'trial_s': trial_s,
+                                         'candidates': [tr.report() for tr in trials]}
         return image
 
     def run_passes(self, ctx, acc, seed, spp, n_pixels):
@@ -115,7 +156,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps = self.pass_state(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
-            ps.store = LightStore(n=ps.n, capacity=cap, record=ctx.record) if cap > 0 else None
+            ps.store = LightStore(n=ps.n_light, capacity=cap, record=ctx.record) if cap > 0 else None
             LightTracer(ctx, ps).trace()
             # Evaluate what the light subpaths leave to the camera pass (the sampler's state, the
             # stored vertices' counts): left symbolic, the camera kernel would trace every light
@@ -126,6 +167,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 if ps.store is not None:
                     dr.schedule(ps.store.count)
                 dr.eval()
+            if ctx.light_cache is not None and ctx.strategies.trace_connect and ps.store is not None:
+                ps.cache = LightCache(ps.store, self.cache_run[1])
         if ctx.strategies.trace_merge:
             ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last
@@ -157,16 +200,35 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 # vertex's wavelengths
                 u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
+        # light subpaths: one per camera sample, or the cache's n_L (whole ones per iteration)
+        n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None else n
         schedule, eta = None, None
         if ctx.strategies.trace_merge:
             s = self.settings
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
-                                     spp_pass, pixel_count)
+                                     spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
         ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
+        if ctx.light_cache is not None:
+            self.cache_pass_state(ctx, ps, seed, i, n_light, eta)
         return ps
+
+    def cache_pass_state(self, ctx, ps, seed, i, n_light, eta):
+        """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
+        their own sampler, the splats' scale 1/spp times n / n_L, the MIS counts (merges: the
+        camera samples' ``eta``, and the light subpaths' of their iterations in ``mis_light``)."""
+        ps.n_light = n_light
+        ps.light_sampler = ctx.sensor.sampler().clone()
+        ps.light_sampler.set_sample_count(ps.spp_pass)
+        ps.light_sampler.seed(pass_seed(seed, PILOT_PASS + 1 + i), n_light)
+        ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
+        vpp, c = self.cache_run
+        counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
+        ps.mis = ctx.mis.for_pass(eta, counts)
+        eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light)) if eta is not None else None
+        ps.mis_light = ctx.mis.for_pass(eta_light, counts)
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {
@@ -184,6 +246,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
+        if ctx.light_cache is not None:
+            vpp, c = self.cache_run
+            info['light_cache'] = {'light_paths_per_sample': ctx.light_cache.ratio, 'connections': c,
+                                   'pilot_vertices_per_path': vpp}
         if ctx.strategies.trace_merge:
             info['merge_iteration'] = self.merge_iteration
             info['merge_radius'] = self.last_merge_radius
@@ -218,6 +284,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if spp == 0:
             spp = sensor.sampler().sample_count()
         check_scene(scene, sensor)
+        if self.technique == 'auto':
+            raise NotImplementedError("bdpt: technique 'auto' renders trial images first and has no "
+                                      "derivatives; differentiate with a technique of its own")
         if self.technique in ('vcm', 'vm'):
             raise NotImplementedError(
                 f"bdpt: technique '{self.technique}' (vertex merging) is not differentiable here: the "

@@ -18,19 +18,23 @@ class LightTracer:
 
     def __init__(self, ctx, ps):
         self.ctx, self.ps = ctx, ps
-        self.mis = ps.mis
+        self.mis = ps.mis_light if ps.mis_light is not None else ps.mis
         # spectral variants: the wavelengths' sampling weight. It enters the splats (t=1) only:
         # the camera subpath of the same sample carries it already, and a connection multiplies
         # both throughputs
         self.wl_weight = ps.spectral[1] if ps.spectral is not None else 1.0
+        self.sampler = ps.light_sampler     # the pass's sampler (the light vertex cache: its own)
+        self.n = ps.n_light                 # light subpaths: one per camera sample, or n_L (cache)
+        self.splat_scale = ps.splat_scale if ps.splat_scale is not None else ctx.splat_scale
+        self.splats = not ps.pilot          # a pilot pass (light_cache.pilot) only stores vertices
 
     # ------------------------------------------------------------------ emission
     def start(self):
         """Emission and the first hit y1: (y1, the Subpath there). The sample's wavelengths
         (spectral variants) are the pass state's: its camera subpath carries the same ones."""
         c, ps = self.ctx, self.ps
-        sampler = ps.sampler
-        active = dr.full(mi.Bool, True, ps.n)
+        sampler = self.sampler
+        active = dr.full(mi.Bool, True, self.n)
         u_sel, u_pos, u_dir = sampler.next_1d(), sampler.next_2d(), sampler.next_2d()
         wl = ps.spectral[0] if ps.spectral is not None else None
         e = c.sampling.sample_emission(u_sel, u_pos, u_dir, active, wl)
@@ -38,7 +42,7 @@ class LightTracer:
 
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
         u_cam = sampler.next_2d()
-        if c.strategies.trace_splat_y0 and e.kinds.area is not False:      # only surfaces can be seen directly
+        if self.splats and c.strategies.trace_splat_y0 and e.kinds.area is not False:      # only surfaces can be seen directly
             self.strategy_s1_t1(u_cam, e, active & e.kinds.area)
 
         active &= c.max_depth_edges >= 2
@@ -51,7 +55,7 @@ class LightTracer:
         cos_hit = dr.abs(dr.dot(si.n, e.ray.d))
         dist2 = c.emitters.first_edge_dist2(e, si)
         st = self.mis.light_start(e.pdf_emit_w, e.cos_e, e.kinds.delta, pdf_direct, dist2, cos_hit)
-        return si, Subpath(beta, dr.max(beta), st, dr.full(mi.UInt32, 1, ps.n), active)
+        return si, Subpath(beta, dr.max(beta), st, dr.full(mi.UInt32, 1, self.n), active)
 
     # ------------------------------------------------------------------ strategies
     def strategy_s1_t1(self, u, e, active):
@@ -71,7 +75,7 @@ class LightTracer:
         pdf_light_a = e.pdf_light_a
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), cos_g, dr.square(ds.dist))  # We |cos| / d^2
         w = self.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
-        value = le * tr * dr.abs(cos_g) * (sensor_w * safe_div(1.0, pdf_light_a)) * c.splat_scale
+        value = le * tr * dr.abs(cos_g) * (sensor_w * safe_div(1.0, pdf_light_a)) * self.splat_scale
         if not isinstance(self.wl_weight, float):
             value = value * self.wl_weight
         self.ps.film.put_splat(ds.uv, value * w, ok, si_e.wavelengths)
@@ -83,7 +87,7 @@ class LightTracer:
         light image."""
         c = self.ctx
         si = v.si
-        ds, sensor_w = c.sensor.sample_direction(si, self.ps.sampler.next_2d(), active)
+        ds, sensor_w = c.sensor.sample_direction(si, self.sampler.next_2d(), active)
         ok = active & (ds.pdf > 0)
         f, pdf_fwd_w, pdf_rev_w, valid = v.eval(c, ds.d, IMPORTANCE, ok)
         ok &= valid & (dr.max(f) > 0)
@@ -91,7 +95,7 @@ class LightTracer:
         ok &= visible(tr)
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
         w = self.mis.weight_t1(sub.mis.d_vcm, sub.mis.d_vc, pdf_cam_a, pdf_rev_w)
-        value = sub.beta * f * tr * sensor_w * c.splat_scale
+        value = sub.beta * f * tr * sensor_w * self.splat_scale
         if not isinstance(self.wl_weight, float):
             value = value * self.wl_weight
         self.ps.film.put_splat(ds.uv, value * w, ok, si.wavelengths)
@@ -108,12 +112,12 @@ class LightTracer:
         grows, and the walk resumes."""
         c, store = self.ctx, self.ps.store
         si, sub = self.start()
-        ray = dr.zeros(mi.Ray3f, self.ps.n)             # (the walk's ray: not read on this side)
-        self.idx = dr.arange(mi.UInt32, self.ps.n)
-        count = dr.zeros(mi.UInt32, self.ps.n)
+        ray = dr.zeros(mi.Ray3f, self.n)                # (the walk's ray: not read on this side)
+        self.idx = dr.arange(mi.UInt32, self.n)
+        count = dr.zeros(mi.UInt32, self.n)
         while True:
             self.cap_eff = store.capacity if store is not None and c.unbounded else 0xFFFFFFFF
-            si, sub, (count,) = transport.walk(c, self.mis, self.ps.sampler, self, si, ray, sub, (count,))
+            si, sub, (count,) = transport.walk(c, self.mis, self.sampler, self, si, ray, sub, (count,))
             if store is None:
                 break
             store.count = count
@@ -140,7 +144,7 @@ class LightTracer:
             do_store = sub.active & smooth & (sub.depth + store_edges <= max_edges)
             store.record.store(store.v, store.record.make(v, sub), store.slot(count, self.idx), do_store)
             count = count + dr.select(do_store, 1, 0)
-        if c.strategies.trace_splat:
+        if self.splats and c.strategies.trace_splat:
             self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
         sub.active = sub.active & (sub.depth + 2 <= max_edges)
         return sub, (count,), True

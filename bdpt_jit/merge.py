@@ -48,12 +48,14 @@ class MergeSchedule:
     caustic scene (64 spp a pass), vcm was then 4x noisier than bdpt where neither merges
     anything useful, since the weights assume independent light subpaths."""
 
-    def __init__(self, scene, radius_rel, alpha, first, spp_pass, pixel_count):
+    def __init__(self, scene, radius_rel, alpha, first, spp_pass, paths):
+        # paths: light subpaths of an iteration (the pass's pixel count; with the light vertex
+        # cache its n_L / spp_pass)
         self.r1 = radius_rel * scene_radius(scene)
         self.alpha = alpha
         self.r_last = self.r1 * float(first + spp_pass - 1) ** (0.5 * (alpha - 1.0))
         self.first = dr.opaque(mi.Float, float(first))
-        self.paths_f = dr.opaque(mi.Float, float(pixel_count))          # N of an iteration
+        self.paths_f = dr.opaque(mi.Float, float(paths))                # N of an iteration
         self.spp_pass = dr.opaque(mi.UInt32, spp_pass)
 
     def group(self, idx):

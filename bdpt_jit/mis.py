@@ -32,6 +32,13 @@ Conventions for the strategies (s light vertices, t camera vertices, endpoints c
   is why the light subpath evaluates it at its first hit;
 - s=1, t=1 splats the light subpath's first vertex y0 (its density: emission position).
 - Russian roulette is left out of all densities (a valid choice: the weights still sum to 1).
+- Sample counts [Veach 9.2.2] (n_i p_i; the light vertex cache, light_cache.py, ``set_counts``):
+  hits and emitter sampling count 1, connections n_c = c n_L / V (c draws from V cached vertices
+  of n_L light subpaths per camera vertex), light tracing n_lt = n_L / n (n camera samples), merges
+  eta. Without the cache both are 1 and nothing of them is traced. Each scatter's new d_vcm holds
+  h(n_c) (the strategy ending the light subpath there is a connection), the camera's start h(n_lt);
+  weight_s0 takes n_c back out where its s=1 term is emitter sampling, and the weights of a
+  connection and a splat divide the others' sum by their own count.
 
 Vertex merging (technique ``vcm``) adds one strategy per non-delta interior vertex: the camera
 vertex merged with a light vertex of any light subpath of the pass within the radius r
@@ -131,14 +138,35 @@ class MIS:
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
         self.merge_everywhere = merge_everywhere
         self.pending = self.mis_merges and not merge_everywhere     # light side defers its merge terms
+        # sample counts of the light vertex cache (light_cache.py), per camera sample; None: the
+        # classic estimator (one light subpath per camera sample, all its vertices: both 1)
+        self.n_c = None               # connections per camera vertex: c n_L / V (set_counts)
+        self.n_lt = None              # light subpaths per camera sample: n_L / n (set_counts)
 
-    def for_pass(self, eta=None):
-        """This MIS with the pass's eta = pi r^2 N (merges; None: no merges): a copy, so that
+    def for_pass(self, eta=None, counts=None):
+        """This MIS with the pass's eta = pi r^2 N (merges; None: no merges) and the light vertex
+        cache's sample counts (n_c, n_lt) (None: the classic estimator): a copy, so that
         per-pass values travel with the pass and the Context's MIS is never written."""
         out = copy.copy(self)
         if eta is not None:
             out.set_radius(eta)
+        if counts is not None:
+            out.set_counts(*counts)
         return out
+
+    def set_counts(self, n_c, n_lt):
+        """Sample counts relative to one camera sample [Veach 9.2.2] (n_i p_i): ``n_c``, the
+        connections' (c n_L / V: c of the V cached vertices of n_L light subpaths per camera
+        vertex); ``n_lt``, light tracing's (n_L light subpaths for n camera samples). Hits and
+        emitter sampling count 1; merges eta = pi r^2 N (set_radius), already in these units."""
+        self.n_c = n_c
+        self.n_lt = n_lt
+
+    def _count(self, which):
+        """h(n) of a technique's sample count, or None where it is 1 (the classic estimator:
+        nothing is traced for it, so its kernels stay as they were)."""
+        n = getattr(self, which)
+        return None if n is None else self.h(n)
 
     def set_radius(self, eta):
         """The pass's eta = pi r^2 N (an opaque mi.Float: changing it recompiles nothing)."""
@@ -169,6 +197,8 @@ class MIS:
             # s=0 at the first hit.
             return 0.0 * pdf_cam_w, 0.0 * pdf_cam_w
         d_vcm = self.h(1.0 / pdf_cam_w)                     # [eq. 22] vc_0 = 1 / p->_0
+        if self.n_lt is not None:
+            d_vcm = d_vcm * self._count('n_lt')             # [Veach 9.2.2] n_i p_i: t=1 counts n_lt
         d_vc = 0.0 * pdf_cam_w                              # [eq. 22] no strategy behind z0
         return d_vcm, d_vc
 
@@ -208,6 +238,11 @@ class MIS:
         d_vc_smooth = self.h(cos_out * inv_fwd) * (d_vc * self.h(pdf_rev_w) + d_vcm
                                                    + _gate(self.vm_factor, merge_here))  # [eq. 21, 22] vcm_i, [VCM (35)]
         d_vcm_smooth = self.h(inv_fwd)                                                  # [eq. 22] vc_i = 1/p->_i
+        if self.n_c is not None:
+            # the strategy that ends the light subpath at this vertex is a connection (count n_c);
+            # on the camera side it is emitter sampling (count 1) where the next vertex is the
+            # emitter hit: weight_s0 takes the n_c back out there
+            d_vcm_smooth = d_vcm_smooth * self._count('n_c')                           # [Veach 9.2.2] n_i p_i
         if is_delta is None:
             return d_vcm_smooth, d_vc_smooth
         # A delta vertex cannot be connected: the strategies that would end a subpath there
@@ -316,15 +351,20 @@ class MIS:
         return d_vc, d_vm
 
     # ------------------------------------------------------------------ weights
-    def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w):
+    def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w, first_hit=False):
         """Camera subpath hits an emitter (s=0). ``pdf_direct_a``: emitter sampling density of the
         hit point (per unit area; for the first hit the light subpath's position density);
-        ``pdf_emit_w``: light subpath's density of emitting towards the previous vertex."""
+        ``pdf_emit_w``: light subpath's density of emitting towards the previous vertex;
+        ``first_hit``: the emitter is the camera subpath's first vertex (a mask), where the
+        strategy s=1 is the splat s=1,t=1 (its count is in d_vcm from camera_init)."""
         if not self.s.hits:
             return 0.0 * d_vcm
         if self.s.ppm:
             return 1.0 + 0.0 * d_vcm                        # vm: the kernel counts delta chains only
         w_camera = self.h(pdf_direct_a) * d_vcm             # [eq. 20, 22] strategy s=1, [VCM (43)]
+        if self.n_c is not None:
+            # [Veach 9.2.2] emitter sampling counts 1, not the n_c that on_scatter gave d_vcm
+            w_camera = w_camera * dr.select(first_hit, 1.0, 1.0 / self._count('n_c'))
         if self.s.connections:
             w_camera = w_camera + self.h(pdf_emit_w) * d_vc  # [eq. 20, 21] strategies s>=2
         return _finite(1.0 / (1.0 + w_camera))              # [eq. 20] w_light = 0
@@ -363,6 +403,8 @@ class MIS:
                                                 + light.d_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
         w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + cam.d_vcm
                                                  + cam.d_vc * self.h(pdf_cam_rev_w))      # [eq. 21, 22], [VCM (41)]
+        if self.n_c is not None:
+            return _finite(1.0 / ((w_light + w_camera) / self._count('n_c') + 1.0))      # [Veach 9.2.2] / h(n_c)
         return _finite(1.0 / (w_light + 1.0 + w_camera))                                  # [eq. 20]
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
@@ -375,6 +417,8 @@ class MIS:
         merge_y = self.merge_everywhere            # y's camera-side neighbour: the camera, not delta
         w_light = self.h(pdf_cam_a) * (_gate(self.vm_factor, merge_y) + l_vcm
                                        + l_vc * self.h(pdf_light_rev_w))            # [eq. 21, 22], [VCM (46)]
+        if self.n_lt is not None:
+            w_light = w_light / self._count('n_lt')                              # [Veach 9.2.2] / h(n_lt)
         return _finite(1.0 / (w_light + 1.0))                                    # [eq. 20] w_camera = 0
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):
@@ -384,6 +428,8 @@ class MIS:
             return 0.0 * pdf_cam_a
         if not self.s.hits:
             return 1.0 + 0.0 * pdf_cam_a                    # light tracing alone (lt)
+        if self.n_lt is not None:
+            return _finite(1.0 / (1.0 + self.h(pdf_cam_a / (self.n_lt * pdf_light_a))))  # [eq. 20], [Veach 9.2.2]
         return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
 
     def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w):

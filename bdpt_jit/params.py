@@ -52,8 +52,11 @@ PARAMS = (
           '(all of bdpt plus vertex merging: Georgiev et al. 2012, renders caustics seen through '
           'glass), `vm` (vertex merging alone: progressive photon mapping, Hachisuka et al. 2008, '
           'merging at the first non-specular camera vertex). `vcm` and `vm` are consistent, not '
-          'unbiased: their bias vanishes as the merging radius shrinks over passes.',
-          choices=('bdpt', 'pt', 'lt', 'vcm', 'vm')),
+          'unbiased: their bias vanishes as the merging radius shrinks over passes. `auto`: the most '
+          'efficient of bdpt\'s configurations (the classic estimator and light vertex caches) by '
+          'trial renders before the render (docs/light-cache.md); the choice in '
+          '`last_render_info[\'auto\']`.',
+          choices=('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto')),
     Param('radius', float, 0.005,
           'Initial merging radius of `vcm` and `vm`, relative to the radius of the scene\'s bounding '
           'sphere (SmallVCM uses 0.003 at 512x512; a larger radius is less noisy and more biased).',
@@ -69,6 +72,19 @@ PARAMS = (
           'the specular-diffuse-specular paths that no connection samples all pass there, and a '
           'merge elsewhere only adds a gather beside a connection (in a scene without specular '
           'surfaces `vcm` then renders as `bdpt`). The MIS weights follow either choice.'),
+    Param('light_paths', float, -1.0,
+          'Light vertex cache (Davidovic et al. 2014): light subpaths a pass traces, as a ratio of its '
+          'camera samples (e.g. 0.25, 1, 2; rounded to whole subpaths per pixel of an iteration); '
+          'their vertices form one cache that every camera vertex draws `connections` vertices from, '
+          'and every sample counts in the MIS weights (Veach 9.2.2: n_i p_i). -1: the classic '
+          'estimator, one light subpath per camera sample connected to that sample\'s own vertices. '
+          '`technique` bdpt, lt or vcm (merging with the n_L subpaths of each iteration), RGB and monochrome variants, no derivatives (docs/light-cache.md).',
+          minimum=-1.0),
+    Param('connections', int, -1,
+          'With the light vertex cache (`light_paths` > 0): light vertices each camera vertex is '
+          'connected to, drawn uniformly from all the pass\'s cached vertices. -1: as many as a '
+          'light subpath stores on average (rounded, at least 1), measured by the pilot pass.',
+          minimum=-1),
     Param('hide_emitters', bool, False,
           'Hide directly visible emitters, as in Mitsuba\'s `path`.'),
     Param('strategy_images', bool, False,
@@ -151,11 +167,33 @@ def parse_properties(props) -> dict:
         out[name] = check_value(PARAMS_BY_NAME[name], value)
     for p in PARAMS:
         out.setdefault(p.name, p.default)
+    check_light_cache(out)
     if out['strategy_images'] and out['technique'] in ('vcm', 'vm'):
         raise ParameterError(
             f"bdpt: parameter 'strategy_images' is for the (s,t) strategies; technique "
             f"'{out['technique']}' also merges, which no (s,t) layer holds: use technique bdpt")
     return out
+
+
+def check_light_cache(out):
+    """The light vertex cache's parameters against each other and the technique."""
+    n_l, c, tech = out['light_paths'], out['connections'], out['technique']
+    if n_l != -1.0 and not n_l > 0:
+        raise ParameterError(f"bdpt: parameter 'light_paths' must be -1 (the classic estimator) or > 0 "
+                             f"(light subpaths per camera sample), got {n_l}")
+    if c == 0:
+        raise ParameterError("bdpt: parameter 'connections' must be -1 (automatic) or >= 1, got 0 "
+                             "(technique pt renders without connections)")
+    if n_l == -1.0 and c != -1:
+        raise ParameterError(f"bdpt: parameter 'connections' ({c}) needs the light vertex cache: set "
+                             "light_paths > 0 (the classic estimator connects to all vertices of the "
+                             "sample's own light subpath)")
+    if tech == 'auto' and (n_l != -1.0 or c != -1):
+        raise ParameterError("bdpt: parameters 'light_paths' and 'connections' are chosen by technique "
+                             "'auto'; leave them at -1 or choose a technique")
+    if n_l != -1.0 and tech not in ('bdpt', 'lt', 'vcm'):
+        raise ParameterError(f"bdpt: parameter 'light_paths' needs technique bdpt, lt or vcm, not {tech!r} "
+                             "(pt traces no light subpaths; vm with the cache is not implemented)")
 
 
 AOV_TYPES = {'depth': 'T', 'position': 'XYZ', 'uv': 'UV', 'geo_normal': 'XYZ', 'sh_normal': 'XYZ',

@@ -122,7 +122,20 @@ def chain_free(k, s, P):
     return ~P['delta'][:, 1:max(s, 1)].any(axis=1) if s > 1 else np.ones(M, bool)
 
 
-def brute_force(kind, technique, P, p_lens=None, chains=False):
+def strategy_count(k, s, counts):
+    """The sample count of strategy s on a path of k edges [Veach 9.2.2] (light vertex cache,
+    tests/test_light_cache.py: ``counts`` = (n_c, n_lt) per path; None: all 1): hits and emitter
+    sampling 1, connections n_c, light tracing (t=1) n_lt."""
+    if counts is None:
+        return 1.0
+    n_c, n_lt = counts
+    t = k + 1 - s
+    if t == 1:
+        return n_lt
+    return n_c if s >= 2 else 1.0
+
+
+def brute_force(kind, technique, P, p_lens=None, chains=False, counts=None):
     everywhere = technique == 'vcm_all'
     technique = 'vcm' if everywhere else technique
     k = P['k']
@@ -161,6 +174,7 @@ def brute_force(kind, technique, P, p_lens=None, chains=False):
         if p_lens is not None:                              # thin lens: z0 sampled on the lens
             p = p * p_lens
         raw.append(p)
+        p = p * strategy_count(k, s, counts)
         ok = allowed(technique, k, s, P) & (chain_free(k, s, P) if chains else True)
         dens.append(np.where(ok, p, 0.0))
     if technique == 'vcm':
@@ -183,7 +197,7 @@ def aligned(cls, a, dtype):
     return cls(np.broadcast_to(np.asarray(a, dtype=dtype), (M,)).tolist())
 
 
-def recursive(kind, technique, P, chains=False):
+def recursive(kind, technique, P, chains=False, counts=None):
     everywhere = technique == 'vcm_all'
     technique = 'vcm' if everywhere else technique
     k = P['k']
@@ -207,6 +221,8 @@ def recursive(kind, technique, P, chains=False):
     cos_e0 = np.ones(M) if infinite or ek == 'delta_pos' else cosA[:, 0]
 
     mis.set_radius(F(P['eta']))
+    if counts is not None:
+        mis.set_counts(F(counts[0]), F(counts[1]))
 
     # The subpaths' MIS quantities through the kernels' own event functions (mis.MIS.light_start,
     # camera_start, scatter, hit): each of eqs. 20-22 is then checked where the kernels apply it.
@@ -240,7 +256,7 @@ def recursive(kind, technique, P, chains=False):
                 w = F(np.zeros(M))
             else:
                 pdf_direct_a = P['pA_light0'] if k == 1 else P['p_direct_a']
-                w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w)
+                w = mis.weight_s0(c_vcm, c_vc, F(pdf_direct_a), pdf_emit_w, first_hit=k == 1)
         elif s == 1 and ek == 'dir_area':
             w = F(np.zeros(M))                               # the kernels never form it
         elif s == 1 and t == 1:

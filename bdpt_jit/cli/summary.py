@@ -85,6 +85,14 @@ def _bdpt_statistics(info):
     }
     if 'light_vertex_levels' in info:
         stats['light_vertex_levels'] = info['light_vertex_levels']
+    if 'light_cache' in info:              # light_paths > 0 (light_cache.py)
+        lc = info['light_cache']
+        stats['light_cache'] = (f"{lc['light_paths_per_sample']:g} light subpaths a sample, {lc['connections']} "
+                                f"connections a camera vertex, {lc['pilot_vertices_per_path']:.3g} vertices a subpath")
+    if 'auto' in info:                     # technique auto (auto.py)
+        a = info['auto']
+        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of trials; efficiency "
+                         + ', '.join(f"{c['name']} {c['efficiency']:.3g}" for c in a['candidates']))
     return stats
 
 
@@ -113,6 +121,9 @@ def print_summary(stats, res, out, png):
             p(f"  left out        {stats['strategies_left_out']}")
         for name, on, why in features(res.info):
             p(f"  {'needed' if on else 'left out':15} {name}" + (f" ({why})" if on else ''))
+    for key in ('light_cache', 'auto'):
+        if key in stats:
+            p(f"  {key.replace('_', ' '):15} {stats[key]}")
     if res.layers is not None:
         p(f"  layers          {len(res.layers)} strategy layers (weighted and unweighted) in the EXR")
     if any(k.startswith('denoise.') for k in stats):

@@ -1,0 +1,130 @@
+"""The light vertex cache (parameters ``light_paths`` and ``connections``) against the classic
+estimator, ``technique=pt`` and Mitsuba's ``path``: samples per second, and the whole image's
+relative MSE at equal time against a reference rendered by ``path`` (``--ref-integrator``; cached in ``--cache-dir``).
+
+    python benchmarks/bench_light_cache.py --scene ../shared/scenes/smallvcm-box/smallvcm-box.xml \\
+        --res 128 --max-depth 10 --budget 8 --configs path,pt,classic,1:2,0.25:1,1:1,2:4
+
+A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
+``classic`` is bdpt's default estimator, ``pt`` its path tracing. Each contestant renders one
+warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
+passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
+as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
+single run); relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
+error is part of every figure: give it many more samples (``--ref-spp``) than any contestant
+reaches. The scene file takes ``$res`` or ``$resx``/``$resy`` and ``$max_depth``."""
+
+import argparse
+import hashlib
+import os
+import re
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def load(path, res, max_depth, integrator):
+    """The scene at res x res (whichever of $res, $resx/$resy it takes), with ``integrator``."""
+    params = dict(res=res, resx=res, resy=res, max_depth=max_depth)
+    text = open(path).read()
+    kw = {k: v for k, v in params.items() if re.search(r'\$' + k + r'\b', text)}
+    scene = mi.load_file(path, **kw)
+    return scene, mi.load_dict(integrator)
+
+
+def contestant(name, max_depth):
+    """The integrator dict of a configuration name."""
+    if name == 'path':
+        return {'type': 'path', 'max_depth': max_depth}
+    if name == 'pt':
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'pt'}
+    if name == 'classic':
+        return {'type': 'bdpt', 'max_depth': max_depth}
+    ratio, c = name.split(':')
+    return {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': float(ratio),
+            'connections': -1 if c == 'auto' else int(c)}
+
+
+def reference(args):
+    """``--ref-integrator`` (a configuration name; default Mitsuba's path) at --ref-spp, in batches
+    of 64, cached by scene, resolution, depth and integrator."""
+    key = hashlib.sha1(repr((os.path.abspath(args.scene), args.res, args.max_depth, args.ref_spp,
+                             args.ref_integrator, mi.__version__)).encode()).hexdigest()[:16]
+    path = os.path.join(args.cache_dir, f'lc-ref-{key}.npy')
+    if os.path.exists(path):
+        return np.load(path)
+    scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth))
+    acc, done = 0.0, 0
+    while done < args.ref_spp:
+        k = min(64, args.ref_spp - done)
+        acc = acc + np.array(mi.render(scene, integrator=integ, spp=k, seed=10_000 + done), np.float64)[:, :, :3] * k
+        done += k
+    ref = acc / done
+    os.makedirs(args.cache_dir, exist_ok=True)
+    np.save(path, ref)
+    return ref
+
+
+def equal_time(scene, integ, budget, batch_spp, seed0=0):
+    """(mean image, spp done, seconds) of batches until ``budget`` seconds have passed."""
+    acc, spp, t0, b = 0.0, 0, time.perf_counter(), 0
+    while time.perf_counter() - t0 < budget:
+        img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0 + b)
+        acc = acc + np.array(img, np.float64)[:, :, :3] * batch_spp
+        spp += batch_spp
+        b += 1
+    return acc / spp, spp, time.perf_counter() - t0
+
+
+def measure(args, name, ref):
+    scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth))
+    t0 = time.perf_counter()
+    dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
+    warm = time.perf_counter() - t0
+    rels, spps, sps = [], [], []
+    for r in range(args.repeats):               # seeds of their own: 1000 r + batch
+        img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
+        rels.append(float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2))))
+        spps.append(spp)
+        sps.append(spp * args.res * args.res / secs)
+    info = getattr(integ, 'last_render_info', {}).get('light_cache', {})
+    return dict(name=name, warm=warm, spp=int(np.median(spps)), sps=float(np.median(sps)),
+                relmse=float(np.median(rels)), rels=rels, info=info)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--scene', required=True)
+    ap.add_argument('--res', type=int, default=128)
+    ap.add_argument('--max-depth', type=int, default=10)
+    ap.add_argument('--budget', type=float, default=8.0, help='seconds per contestant')
+    ap.add_argument('--batch-spp', type=int, default=4)
+    ap.add_argument('--repeats', type=int, default=1,
+                    help='equal-time runs per contestant (seeds of their own); the median is reported')
+    ap.add_argument('--ref-spp', type=int, default=4096)
+    ap.add_argument('--ref-integrator', default='path',
+                    help='configuration of the reference (classic where path cannot converge)')
+    ap.add_argument('--configs', default='path,pt,classic,1:1,0.25:1,2:4')
+    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--cache-dir', default=os.path.join(os.path.dirname(__file__), 'cache'))
+    args = ap.parse_args()
+    mi.set_variant(args.variant)
+    import bdpt_jit  # noqa: F401  (registers bdpt)
+    t0 = time.perf_counter()
+    ref = reference(args)
+    print(f'# {args.scene} {args.res}x{args.res} max_depth {args.max_depth}, reference {args.ref_integrator} {args.ref_spp} spp '
+          f'({time.perf_counter() - t0:.0f} s), budget {args.budget} s, {mi.variant()}, {os.cpu_count()} cores')
+    rows = [measure(args, name, ref) for name in args.configs.split(',')]
+    base = next((r for r in rows if r['name'] == 'path'), rows[0])
+    print('| configuration | M samples/s | /path | spp in budget | relMSE (median) | relMSE / path | runs | warm-up s | cache |')
+    print('|---|---|---|---|---|---|---|---|---|')
+    for r in rows:
+        print(f"| {r['name']} | {r['sps'] / 1e6:.3f} | {r['sps'] / base['sps']:.2f} | {r['spp']} | {r['relmse']:.4g} | "
+              f"{r['relmse'] / base['relmse']:.2f} | {' '.join(f'{x:.3g}' for x in r['rels'])} | {r['warm']:.1f} | "
+              f"{r['info'] or ''} |")
+
+
+if __name__ == '__main__':
+    main()

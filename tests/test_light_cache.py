@@ -1,0 +1,298 @@
+"""The light vertex cache (light_cache.py, parameters ``light_paths`` and ``connections``) and
+the sample counts in the MIS weights (mis.py, [Veach 9.2.2] n_i p_i).
+
+- Partition of unity with counts: the brute force of tests/test_mis_partition.py with every
+  strategy's density times its count (hits and emitter sampling 1, connections n_c = c n_L / V,
+  light tracing n_lt = n_L / n, merges eta = pi r^2 N), random per path, against the recursive
+  weights of mis.py with ``MIS.set_counts``.
+- Renders: agreement with Mitsuba's references block by block for fixed configurations, every
+  pixel finite, and each (s,t) strategy's unweighted layer against the classic estimator's
+  (the same expectation: the cache changes which light vertices a camera vertex meets, not what
+  a strategy estimates), which is what a wrong count factor in an estimator would break."""
+
+import mitsuba as mi
+import numpy as np
+import pytest
+from scipy import stats
+
+import test_mis_partition as tmp
+from helpers import agreement, file_reference, load_scene, no_delta_mask, render_batches
+from test_agreement import BATCHES, REF_SEED, RES
+from test_analytic import LE, sphere_scene
+
+
+def random_counts(rng):
+    """(n_c, n_lt) per path: n_c = c n_L / V over c in 1..8, n_L / n in [1/8, 4], V / n_L in
+    [0.5, 6] (stored vertices per light subpath)."""
+    M = tmp.M
+    c = rng.integers(1, 9, size=M).astype(float)
+    ratio = 2.0 ** rng.uniform(-3, 2, size=M)
+    per_path = rng.uniform(0.5, 6.0, size=M)
+    return c / per_path, ratio          # c n_L / V = c / (V / n_L); n_L / n
+
+
+@pytest.mark.parametrize('camera', ['pinhole', 'thinlens', 'delta'])
+@pytest.mark.parametrize('emitter', tmp.KINDS)
+@pytest.mark.parametrize('technique', ['bdpt', 'lt', 'vcm_all'])
+@pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
+@pytest.mark.parametrize('k', [1, 4])
+def test_partition_of_unity_with_counts(k, kind, technique, emitter, camera):
+    """Random paths, random (n_L, c, merge density eta): the recursive weights equal the brute
+    force h(n_s p_s) / sum_j h(n_j p_j) and sum to one wherever a strategy samples the path."""
+    rng = np.random.default_rng(50_000 + 1000 * k + 31 * tmp.KINDS.index(emitter)
+                                + 7 * ['power', 'balance', 'uniform'].index(kind))
+    P = tmp.random_paths(rng, k, delta_prob=0.3, emitter=emitter)
+    P['camera'] = camera
+    if camera == 'delta' and technique == 'lt':
+        return                               # refused (test_mis_partition)
+    counts = random_counts(rng)
+    w_rec = tmp.recursive(kind, technique, P, counts=counts)
+    p_lens = 10.0 ** rng.uniform(-1, 3, size=tmp.M) if camera == 'thinlens' else None
+    w_ref = tmp.brute_force(kind, technique, P, p_lens, counts=counts)
+    assert np.all(np.isfinite(w_rec)) and np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
+    tech = 'vcm' if technique == 'vcm_all' else technique
+    any_strategy = np.array([tmp.allowed(tech, k, s, P) for s in range(k + 1)]
+                            + ([tmp.merge_allowed(k, i, P, technique == 'vcm_all') for i in range(1, k)]
+                               if tech == 'vcm' else [])).any(axis=0)
+    np.testing.assert_allclose(w_rec.sum(axis=0)[any_strategy], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
+
+
+def test_counts_matter():
+    """The counts change the weights (a check of the test: with the counts left out of the
+    brute force, the recursive weights with counts disagree with it)."""
+    rng = np.random.default_rng(3)
+    P = tmp.random_paths(rng, 4, delta_prob=0.0)
+    P['camera'] = 'pinhole'
+    counts = random_counts(rng)
+    w_rec = tmp.recursive('power', 'bdpt', P, counts=counts)
+    assert not np.allclose(w_rec, tmp.brute_force('power', 'bdpt', P), rtol=1e-3)
+    w_1pct = tmp.recursive('power', 'bdpt', P, counts=(counts[0] * 1.01, counts[1]))
+    assert not np.allclose(w_1pct, tmp.brute_force('power', 'bdpt', P, counts=counts), rtol=1e-3)
+
+
+@pytest.mark.parametrize('k', [2, 5])
+@pytest.mark.parametrize('technique', ['bdpt', 'vcm_all'])
+def test_partition_of_unity_with_counts_and_delta_vertices(k, technique):
+    """Merges with counts: merge_everywhere with delta vertices (the pending terms)."""
+    rng = np.random.default_rng(60_000 + k)
+    P = tmp.random_paths(rng, k, delta_prob=0.5)
+    P['camera'] = 'pinhole'
+    counts = random_counts(rng)
+    np.testing.assert_allclose(tmp.recursive('power', technique, P, counts=counts),
+                               tmp.brute_force('power', technique, P, counts=counts), rtol=1e-5, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------- parameters
+@pytest.mark.parametrize('params,needle', [
+    ({'connections': -3}, "'connections' must be >= -1"),
+    ({'light_paths': 1.0, 'connections': 0}, "'connections' must be -1 (automatic) or >= 1"),
+    ({'light_paths': 0}, "'light_paths' must be -1 (the classic estimator) or > 0"),
+    ({'light_paths': -0.5}, "'light_paths' must be -1"),
+    ({'connections': 2}, "'connections' (2) needs the light vertex cache"),
+    ({'light_paths': 1.0, 'technique': 'vm'}, "'light_paths' needs technique bdpt, lt or vcm"),
+    ({'light_paths': 1.0, 'technique': 'pt'}, "'light_paths' needs technique bdpt, lt or vcm"),
+])
+def test_bad_parameters_name_the_parameter(params, needle):
+    with pytest.raises(Exception) as e:
+        mi.load_dict({'type': 'bdpt', **params})
+    assert needle in str(e.value)
+
+
+# ---------------------------------------------------------------------------- renders
+# (light_paths, connections): n_L = 1/4 and 2 light subpaths per camera sample, c = 1 and 4
+CONFIGS = [(0.25, 1), (2.0, 4)]
+
+
+def layer_means(scene, props, spp, batches, seed0=0):
+    """{layer: per-batch image means of its unweighted image}, the batches' images (K, H, W, 3);
+    every batch checked: finite pixels, the weighted layers summing to the image."""
+    integ = mi.load_dict(props)
+    out, imgs = {}, []
+    for b in range(batches):
+        img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed0 + b), dtype=np.float64)[:, :, :3]
+        assert np.all(np.isfinite(img)), f'batch {b}: non-finite pixels'
+        layers = integ.strategy_images
+        total = sum(v['weighted'] for v in layers.values())
+        np.testing.assert_allclose(total, img, rtol=1e-4, atol=1e-5 * img.max())
+        for name, v in layers.items():
+            assert np.all(np.isfinite(v['unweighted']))
+            out.setdefault(name, []).append(v['unweighted'].mean())
+        imgs.append(img)
+    return {k: np.array(v) for k, v in out.items()}, np.stack(imgs)
+
+
+def strategy_of(name):
+    s, t = name.split('_')
+    return int(s[1:]), int(t[1:])
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+def test_closed_sphere_layers_are_analytic(light_paths, connections):
+    """Inside the closed emitting sphere (test_analytic) each (s,t) strategy alone, its unweighted
+    layer, estimates Le rho^(s+t-2): connections, splats and the camera-side strategies with the
+    cache, and the image Le sum rho^k. The connections' layers pooled are measured to 0.15%, so
+    a count factor 1% off in the connection estimator (V / (c n_L)) is over 6 sigma away."""
+    rho, max_depth, K = 0.5, 5, 16
+    means, imgs = layer_means(sphere_scene(rho), {'type': 'bdpt', 'max_depth': max_depth, 'strategy_images': True,
+                                                  'light_paths': light_paths, 'connections': connections},
+                              128, K)
+    per_batch = imgs.mean(axis=(1, 2, 3))
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    se = per_batch.std(ddof=1) / np.sqrt(K)
+    assert abs(per_batch.mean() - expected) <= 4 * se + 1e-6, f'image {per_batch.mean()} vs {expected} (se {se})'
+    # the layers the cache changes: connections (s >= 2, t >= 2) and splats (t = 1); the camera
+    # side's hits and emitter sampling are the classic estimator's (measured here, the classic's
+    # emitter sampling alone is 0.998 of analytic in this mesh sphere: s1_t2..s1_t4 at -1.4 to
+    # -1.9 sigma each, 16 x 128 spp; left to an issue of its own)
+    tested = {n: v for n, v in means.items() if n != 'other' and np.ptp(v) > 0
+              and (strategy_of(n)[0] >= 2 or strategy_of(n)[1] == 1)}
+    thr = 1 - 0.99 ** (1 / len(tested))
+    pooled = []
+    for name, v in tested.items():
+        s, t = strategy_of(name)
+        ratio = v / (LE * rho ** (s + t - 2))
+        p = 2 * stats.t.sf(abs(ratio.mean() - 1) / (ratio.std(ddof=1) / np.sqrt(K)), K - 1)
+        assert p >= thr, f'{name}: {ratio.mean():.5f} of Le rho^{s + t - 2} (p {p:.3g} < {thr:.3g})'
+        if s >= 2 and t >= 2:
+            pooled.append(ratio)
+    pooled = np.mean(pooled, axis=0)
+    se = pooled.std(ddof=1) / np.sqrt(K)
+    assert se < 0.0015, f'the connections pooled: se {se:.4f}, too wide to see a 1% count factor'
+    assert abs(pooled.mean() - 1) <= 4 * se, f'connections pooled: {pooled.mean():.5f} of analytic (se {se:.5f})'
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+def test_cornell_layers_agree_with_the_classic_estimator(light_paths, connections):
+    """Every (s,t) strategy's unweighted layer (its estimate alone, summed over the image) with
+    the cache agrees with the classic estimator's (Welch, Sidak over the layers at 0.01); the
+    emitter seen through light tracing (s1_t1) is measured to 0.1% in both, so a splat scale 1%
+    off (n / n_L) is far outside."""
+    scene = load_scene('cornell-box.xml', RES, 4)
+    base = {'type': 'bdpt', 'max_depth': 4, 'strategy_images': True}
+    ref, _ = layer_means(scene, base, 16, BATCHES, seed0=REF_SEED)
+    mine, _ = layer_means(scene, {**base, 'light_paths': light_paths, 'connections': connections}, 16, BATCHES)
+    names = [n for n in ref if n != 'other' and (np.ptp(ref[n]) > 0 or np.ptp(mine[n]) > 0)]
+    thr = 1 - 0.99 ** (1 / len(names))
+    for name in names:
+        a, b = ref[name], mine[name]
+        se = np.sqrt(a.var(ddof=1) / BATCHES + b.var(ddof=1) / BATCHES)
+        p = 2 * stats.norm.sf(abs(a.mean() - b.mean()) / se)
+        assert p >= thr, f'{name}: cache {b.mean():.6g} vs classic {a.mean():.6g} (se {se:.3g}, p {p:.3g})'
+    s1t1 = mine['s1_t1']
+    assert s1t1.std(ddof=1) / np.sqrt(BATCHES) < 0.001 * s1t1.mean()
+
+
+AGREEMENT = [('cornell-box.xml', 5), ('caustic.xml', 5)]
+
+
+@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+@pytest.mark.parametrize('name,max_depth', AGREEMENT)
+def test_agrees_with_mitsuba(name, max_depth, light_paths, connections):
+    """Block by block and per pixel against the references of tests/test_agreement.py (ptracer
+    where no delta surface is seen, path elsewhere; the same cached batches)."""
+    scene = load_scene(name, RES, max_depth)
+    mask_lt = no_delta_mask(scene)
+    ref_pt = file_reference(name, RES, max_depth, 'ptracer', 1024, BATCHES, REF_SEED)
+    ref_path = file_reference(name, RES, max_depth, 'path', 1024, BATCHES, REF_SEED)
+    ref = np.where(mask_lt[None, :, :, None], ref_pt, ref_path)
+    mine = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': light_paths,
+                                  'connections': connections}, 64, BATCHES)
+    ok, msg = agreement(mine, ref, alpha=0.01)
+    assert ok, f'{name} max_depth={max_depth} light_paths={light_paths} connections={connections}: {msg}'
+
+
+def test_light_tracing_with_the_cache_is_analytic():
+    """technique lt with n_L = 1/2 per camera sample inside the closed sphere: Le sum rho^k."""
+    rho, max_depth, K = 0.5, 3, 16
+    b = render_batches(sphere_scene(rho), {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'lt',
+                                           'light_paths': 0.5}, 64, K)
+    per_batch = b.mean(axis=(1, 2, 3))
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    se = per_batch.std(ddof=1) / np.sqrt(K)
+    assert abs(per_batch.mean() - expected) <= 4 * se, f'{per_batch.mean()} vs {expected} (se {se})'
+
+
+def test_render_info_reports_the_cache():
+    scene = load_scene('cornell-box.xml', 8, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'light_paths': 0.5})
+    mi.render(scene, integrator=integ, spp=2)
+    info = integ.last_render_info['light_cache']
+    assert info['light_paths_per_sample'] == 0.5
+    assert info['connections'] == max(1, round(info['pilot_vertices_per_path']))
+    assert 0 < info['pilot_vertices_per_path'] <= 2          # max_depth 4: y1, y2 stored
+
+
+@pytest.mark.parametrize('light_paths,connections', [(0.5, 2), (2.0, 1)])
+def test_vcm_caustic_through_glass_with_the_cache(light_paths, connections):
+    """Merges with n_L light subpaths a pass (test_merging's caustic through a glass sheet, which
+    only merges render): the image mean after 16 iterations in one pass equals the blurred
+    analytic value within 4 standard errors; the merge's normalisation 1 / (pi r^2 N) takes N =
+    n_L / spp_pass, and a wrong N (the pixel count) would be off by the factor light_paths."""
+    import test_merging as tm
+    scene = tm.plane_scene(sheet=True)
+    r1, K, spp = 0.8, 8, 16
+    rel = r1 / tm.scene_radius(scene)
+    means = []
+    for k in range(K):
+        integ = mi.load_dict({'type': 'bdpt', 'technique': 'vcm', 'max_depth': 4, 'radius': rel,
+                              'radius_alpha': 0.5, 'light_paths': light_paths, 'connections': connections})
+        img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=300 + k))
+        assert np.all(np.isfinite(img))
+        means.append(float(np.mean(img)))
+    got, se = np.mean(means), np.std(means, ddof=1) / np.sqrt(K)
+    t_cam = float(tm.sheet_transmittance(np.array([1.0]))[0])
+    want = t_cam * tm.expected_mean([r1 * i ** -0.25 for i in range(1, spp + 1)], tm.through_sheet)
+    assert abs(got - want) < 4 * se, f'{got:.5f} +- {se:.5f}, expected {want:.5f}'
+
+
+def test_vcm_closed_sphere_with_the_cache():
+    """Merging everywhere inside the closed emitting sphere (test_merging.test_closed_sphere: a
+    merge is exact there, eta = pi r^2 N ~ 8 carries much weight): Le sum rho^k with the cache."""
+    from test_analytic import sphere_mesh
+    from bdpt_jit.merge import scene_radius
+    rho, max_depth = 0.8, 4
+    scene = mi.load_dict({
+        'type': 'scene',
+        'sensor': {'type': 'perspective', 'fov': 60,
+                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
+                            'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent'}},
+        'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
+    })
+    b = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'radius': 0.05 / scene_radius(scene),
+                               'radius_alpha': 1.0, 'merge_everywhere': True, 'light_paths': 0.5,
+                               'connections': 2}, spp=16, batches=16)
+    expected = LE * sum(rho ** k for k in range(max_depth))
+    per_batch = b.mean(axis=(1, 2, 3))
+    mean, sigma = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))
+    assert abs(mean - expected) <= 4 * sigma, f'{mean} vs {expected} (sigma {sigma})'
+
+
+# ---------------------------------------------------------------------------- technique auto
+def test_auto_renders_the_chosen_configuration():
+    """technique 'auto' (auto.py): the trial renders choose the most efficient candidate by their
+    own measurements, and the image is that candidate's render with the caller's seed (the trials
+    share no sample with it: no bias from the choice)."""
+    from bdpt_jit import auto
+    scene = load_scene('cornell-box.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
+    img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
+    info = integ.last_render_info['auto']
+    names = [c['name'] for c in info['candidates']]
+    assert names == [n for n, _ in auto.CANDIDATES]
+    best = max(info['candidates'], key=lambda c: c['efficiency'])
+    assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
+    for c in info['candidates']:
+        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0
+        assert np.isclose(c['efficiency'], 1 / (c['relmse_1spp'] * c['seconds_per_spp']), rtol=1e-6)
+    alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
+    # (up to the order of the light image's atomic additions, which varies from run to run)
+    np.testing.assert_allclose(img, np.array(mi.render(scene, integrator=alone, spp=4, seed=5)),
+                               rtol=1e-4, atol=1e-6)
+
+
+def test_auto_refuses_what_it_chooses_itself():
+    with pytest.raises(Exception, match="chosen by technique 'auto'"):
+        mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})
