@@ -87,8 +87,8 @@ def medium_at_emitter(emitter, n, d, active=True):
     direction ``d`` at a point of normal ``n``: for an area emitter whose shape is a medium
     transition, its exterior or interior by the side of ``d``; else ``emitter.get_medium()``
     (a point light inside a medium sphere reports None unless given one)."""
-    own = emitter.get_medium(active)
-    shape = emitter.get_shape(active)
+    own = emitter.get_medium()
+    shape = emitter.get_shape()
     on_shape = dr.reinterpret_array(mi.UInt32, shape) != 0
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(n))
     si.shape, si.n, si.t = shape, n, 1.0

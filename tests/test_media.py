@@ -129,6 +129,31 @@ def test_opaque_surface_blocks_and_inconsistency_is_counted():
     np.testing.assert_allclose(_np(out.tr), np.exp(-np.sqrt(0.5)), rtol=4e-6)
 
 
+def test_which_medium_at_the_ends():
+    """The sensor's medium, an area emitter's side by the direction it emits into (interior
+    inwards, exterior outwards), and a surface that is no medium transition keeping the medium
+    the ray was in."""
+    fog = _homogeneous(1.0)
+    scene = mi.load_dict({'type': 'scene',
+                          'sph': {**_sphere(1.0, fog), 'emitter': {'type': 'area'}},
+                          'wall': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate([0, 0, 0.5])},
+                          'cam': {'type': 'perspective', 'medium': _homogeneous(3.0)}})
+    sphere = [s for s in scene.shapes() if s.interior_medium() is not None][0]
+    ids = lambda m: _np(dr.reinterpret_array(mi.UInt32, m))
+    own = lambda m: int(ids(mi.MediumPtr(m))[0])
+    assert np.all(ids(media.medium_at_sensor(scene.sensors()[0], 2)) == own(scene.sensors()[0].get_medium()))
+    em = dr.zeros(mi.EmitterPtr, 2)
+    em = dr.select(dr.full(mi.Bool, True, 2), mi.EmitterPtr(sphere.emitter()), em)
+    n = mi.Vector3f(0, 0, 1)
+    assert np.all(ids(media.medium_at_emitter(em, n, mi.Vector3f(0, 0, -1))) == own(sphere.interior_medium()))
+    assert np.all(ids(media.medium_at_emitter(em, n, mi.Vector3f(0, 0, 1))) == 0)
+    ray = mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f(0, 0, 1))
+    si = scene.ray_intersect(ray)                       # the wall, inside the sphere
+    inner = media.medium_array(sphere.interior_medium(), 1)
+    assert ids(media.medium_after(si, ray.d, inner))[0] == own(sphere.interior_medium())
+    assert not media.is_null(si.bsdf(ray), si)[0]
+
+
 def _grid_box(rows, scale):
     """A null cube [-1, 1]^3 holding a heterogeneous medium whose density grid has the given
     rows along y (each a list of voxels along x; nearest filter), times ``scale``."""
@@ -139,17 +164,18 @@ def _grid_box(rows, scale):
     return mi.load_dict({'type': 'scene', 'box': {'type': 'cube', 'bsdf': {'type': 'null'}, 'interior': medium}})
 
 
-@pytest.mark.parametrize('y, tau', [(-0.5, 0.5 * 2.0 * 2.0),            # constant 0.5 of the majorant 1 (x 2)
+@pytest.mark.parametrize('y, tau', [(-0.5, 0.25 * 2.0 * 2.0),           # constant 0.25 of the majorant 1 (x 2)
                                     (0.5, 0.25 * 2.0 * 1.0 + 1.0 * 2.0 * 1.0)])   # two voxels: 0.5 and 2 over 1 each
 def test_ratio_tracking_matches_optical_depth(y, tau):
     """Ratio tracking along x from outside the box to outside it (through both null faces):
     the mean of 2^15 estimates is exp(-tau) within 5 standard errors. Row y = -0.5 has density
-    0.5 below the grid's majorant 1; row y = 0.5 has 0.25 over x < 0 and 1 over x > 0 (tau by
-    hand: 0.25 * 2 * 1 + 1 * 2 * 1). Catches: a factor sigma_t / m instead of 1 - sigma_t / m,
+    0.25 below the grid's majorant 1 (not 0.5, where sigma_t / m = 1 - sigma_t / m); row y = 0.5
+    has 0.25 over x < 0 and 1 over x > 0 (tau by hand: 0.25 * 2 * 1 + 1 * 2 * 1). Catches: a
+    factor sigma_t / m instead of 1 - sigma_t / m,
     the bounding-box clip left out (the clamped grid outside the box counted: tau + 2 * 0.5),
     the walk not continuing from each tentative collision."""
     n = 1 << 15
-    scene = _grid_box([[0.5, 0.5], [0.25, 1.0]], 2.0)
+    scene = _grid_box([[0.25, 0.25], [0.25, 1.0]], 2.0)
     t = _tracer(scene)
     assert t.info.heterogeneous
     out = _edge(t, (-3, y, 0.2), (3, y, 0.2), None, n)
@@ -176,27 +202,34 @@ def _ks(samples, cdf, n):
 
 
 def test_delta_tracking_homogeneous_distribution_and_densities():
-    """sigma_t 1 in a null sphere of radius 3, rays from the centre: collision distances follow
-    sigma_t exp(-sigma_t t) (KS over the sub-distribution, escapes counted as mass at 3), the
+    """sigma_t 2 in a null sphere of radius 1.5, rays from the centre: collision distances follow
+    sigma_t exp(-sigma_t t) (KS over the sub-distribution, escapes counted as mass at 1.5), the
     weight is 1 / sigma_t at a collision and 1 at the surface, pdf_fwd equals the connection
     side's density (EdgeTransmittance.pdf_l) at the same point, and the distance density over
-    [0, 3] plus the pass-through probability integrate to 1 (midpoint rule). Catches: T missing
-    or sigma_t T used at the surface end (sum 1 - e^-3 or 1 + 2e^-3 ...), the reverse density
-    taking sigma_t at a surface start."""
-    n, radius = 1 << 15, 3.0
-    scene = mi.load_dict({'type': 'scene', 'sph': _sphere(radius, _homogeneous(1.0))})
+    [0, 1.5] plus the pass-through probability integrate to 1 (midpoint rule). sigma_t is not 1
+    so that a density off by a factor sigma_t shows. Catches: sigma_t left out at a medium end
+    (sum 1 - (1 - e^-3) / 2), sigma_t T used at the surface end (sum 1 + e^-3), the reverse
+    density taking sigma_t at a surface start."""
+    n, sigma, radius = 1 << 15, 2.0, 1.5
+    scene = mi.load_dict({'type': 'scene', 'sph': _sphere(radius, _homogeneous(sigma))})
     inner = scene.shapes()[0].interior_medium()
     t, ds = _distance(scene, inner, n)
     coll = _np(ds.collided).astype(bool)
     tc = _np(ds.mei.t)[coll]
-    assert _ks(tc, lambda x: 1 - np.exp(-x), n) < KS_001 / np.sqrt(n)
-    _assert_mean(~coll, np.exp(-radius), 'pass-through probability')
+    assert _ks(tc, lambda x: 1 - np.exp(-sigma * x), n) < KS_001 / np.sqrt(n)
+    _assert_mean(~coll, np.exp(-sigma * radius), 'pass-through probability')
     w = _np(ds.weight[0])
-    np.testing.assert_allclose(w[coll], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(w[coll], 1.0 / sigma, rtol=1e-5)
     np.testing.assert_allclose(w[~coll], 1.0, rtol=1e-5)
-    np.testing.assert_allclose(_np(ds.pdf_fwd)[coll], np.exp(-tc), rtol=1e-5)
-    np.testing.assert_allclose(_np(ds.pdf_fwd)[~coll], np.exp(-radius), rtol=1e-5)
-    np.testing.assert_allclose(_np(ds.pdf_rev), _np(ds.pdf_fwd), rtol=1e-6)     # surface start: T both ways
+    np.testing.assert_allclose(_np(ds.pdf_fwd)[coll], sigma * np.exp(-sigma * tc), rtol=1e-5)
+    np.testing.assert_allclose(_np(ds.pdf_fwd)[~coll], np.exp(-sigma * radius), rtol=1e-5)
+    d_end = np.where(coll, _np(ds.mei.t), radius)
+    np.testing.assert_allclose(_np(ds.pdf_rev), np.exp(-sigma * d_end), rtol=1e-5)   # surface start: T
+    inner_n = media.medium_array(inner, n)
+    vstart = media.DensityFactor.at(t.info, inner_n, dr.full(mi.Spectrum, sigma, n), dr.full(mi.Bool, True, n))
+    _, dv = _distance(scene, inner, n, start=vstart)      # from a medium vertex: sigma_t T
+    d_end = np.where(_np(dv.collided).astype(bool), _np(dv.mei.t), radius)
+    np.testing.assert_allclose(_np(dv.pdf_rev), sigma * np.exp(-sigma * d_end), rtol=1e-5)
     # the connection side's density at the same points, and the partition of unity
     m = 4096
     ts = (np.arange(m) + 0.5) / m * radius
@@ -206,7 +239,7 @@ def test_delta_tracking_homogeneous_distribution_and_densities():
     ray = spawn_to((mi.Point3f(0, 0, 0) + z, z, 0.0), (q, z, 0.0), 0.0)
     edge = t.edge(ray, (q, z, dr.zeros(mi.Float, m)), media.medium_array(inner, m), _sampler(m),
                   dr.full(mi.Bool, True, m))
-    sig = dr.full(mi.Spectrum, 1.0, m)
+    sig = dr.full(mi.Spectrum, sigma, m)
     dens = _np(edge.pdf_l(media.DensityFactor.at(t.info, media.medium_array(inner, m), sig, dr.full(mi.Bool, True, m))))
     through = _edge(t, (0, 0, 0), (0, 0, radius + 1), inner, 1).pdf_l(media.DensityFactor.surface(1))
     total = dens.sum() * radius / m + _np(through)[0]
