@@ -185,7 +185,7 @@ def _copy_ray(ray, maxt):
 
 def homogeneous_tr(sigma_t, t):
     """exp(-sigma_t t) per channel; 1 where sigma_t is 0 (also for t infinite)."""
-    return dr.select(sigma_t > 0, dr.exp(-sigma_t * t), 1.0)
+    return mi.Spectrum(dr.select(sigma_t > 0, dr.exp(-sigma_t * t), 1.0))
 
 
 class EdgeTransmittance:
@@ -268,7 +268,7 @@ class MediumTracer:
             mei = medium.sample_interaction(r, sampler.next_1d(going), mi.UInt32(0), going)
             tent = going & mei.is_valid()
             m = mei.combined_extinction[0]
-            tr[tent] = tr * safe_div(1.0, m) * mei.sigma_n
+            tr[tent] = mi.Spectrum(tr * safe_div(1.0, m) * mei.sigma_n)
             self._count('null_collisions', tent)
             r.o, r.maxt = dr.select(tent, mei.p, r.o), dr.select(tent, r.maxt - mei.t, r.maxt)
             going = tent & (dr.max(tr) > 0)
@@ -300,7 +300,7 @@ class MediumTracer:
             si = self.scene.ray_intersect(ray, going)
             hit = going & si.is_valid()
             seg = self._segment_tr(ray, dr.select(hit, si.t, ray.maxt), medium, sampler, going)
-            tr[going], tr_hom[going] = tr * seg[0], tr_hom * seg[1]
+            tr[going], tr_hom[going] = mi.Spectrum(tr * seg[0]), mi.Spectrum(tr_hom * seg[1])
             if self.info.heterogeneous:        # (homogeneous only: T_maj stays 1, a constant)
                 tmaj[going] = tmaj * seg[2]
             null = hit & is_null(si.bsdf(ray), si)
@@ -346,7 +346,7 @@ class MediumTracer:
             p_real = safe_div(mean(mei.sigma_t), mei.combined_extinction[0])
             real = tent & (sampler.next_1d(tent) < p_real)
             null = tent & ~real
-            w[null] = w * safe_div(1.0, mean(mei.sigma_n)) * mei.sigma_n
+            w[null] = mi.Spectrum(w * safe_div(1.0, mean(mei.sigma_n)) * mei.sigma_n)
             step = mi.Float(mei.t)        # a copy: mei.t is a reference into mei, overwritten below
             t_acc[tent] = t_acc + step
             collided |= real
@@ -403,9 +403,9 @@ class MediumTracer:
             hit = going & si.is_valid()
             coll, mei, seg_hom, seg_w, seg_maj, f = self._collide(ray, dr.select(hit, si.t, ray.maxt),
                                                                    medium, c, sampler, going)
-            tr_hom[going] = tr_hom * seg_hom
+            tr_hom[going] = mi.Spectrum(tr_hom * seg_hom)
             if self.info.heterogeneous:        # (homogeneous only: no null weight, T_maj 1)
-                w[going], tmaj[going] = w * seg_w, tmaj * seg_maj
+                w[going], tmaj[going] = mi.Spectrum(w * seg_w), tmaj * seg_maj
             coll &= going
             collided |= coll
             found = dr.select(coll, mei, found)
@@ -419,7 +419,7 @@ class MediumTracer:
             ray, medium = dr.select(going, ray_on, ray), dr.select(going, medium_on, medium)
         self._count('real_collisions', collided)
         found.t = dr.norm(found.p - origin)      # from the sample's origin (not the last segment's)
-        return self._distance_result(found, si_end, collided, (tr_hom, w, tmaj), factor, start, medium, ok)
+        return self._distance_result((found, si_end, collided), (tr_hom, w, tmaj), factor, start, medium, ok)
 
     def _cross_any(self, si, ray, end, medium):
         """The ray on from a null hit: towards ``end`` (a shadow or connection ray) or in the same
@@ -429,9 +429,10 @@ class MediumTracer:
         err = self.offsets.error(si.p, si.shape)
         return spawn(si.p, si.n, err, ray.d, ray.time, ray.wavelengths), medium_after(si, ray.d, medium)
 
-    def _distance_result(self, mei, si, collided, parts, factor, start, medium, ok):
-        """The DistanceSample from the walk's totals ``parts`` = (tr_hom, null weight, T_maj)."""
-        tr_hom, w, tmaj = parts
+    def _distance_result(self, ends, parts, factor, start, medium, ok):
+        """The DistanceSample from the walk's ends = (collision, surface, collided) and totals
+        ``parts`` = (tr_hom, null weight, T_maj)."""
+        (mei, si, collided), (tr_hom, w, tmaj) = ends, parts
         p_mix = mean(tr_hom * factor.sig_hom) * factor.sig_het      # the channel mixture's density (no T_maj)
         weight = finite_or_zero(tr_hom * w * safe_div(1.0, p_mix))
         pdf_fwd = pdf_l(tr_hom, tmaj, factor)
