@@ -246,6 +246,39 @@ def test_delta_tracking_homogeneous_distribution_and_densities():
     assert abs(total - 1.0) < 2e-4, total
 
 
+def test_delta_tracking_across_nested_media():
+    """Nested spheres (sigma_t 2 inside radius 1, 0.5 out to radius 2), rays from the centre:
+    the pass-through probability is exp(-2.5); a collision's pdf_fwd equals the connection
+    side's pdf_l to the same point (the walk's transmittance carried across the boundary); the
+    density integrates to 1 with the pass-through over both media. Catches: the first medium's
+    transmittance dropped at the null boundary (collisions beyond it with the density of a walk
+    that started there), the medium not switched (sigma_t 2 out to radius 2)."""
+    n, m = 1 << 15, 4096
+    ma = mi.load_dict(_homogeneous(0.5))
+    scene = mi.load_dict({'type': 'scene', 'outer': _sphere(2.0, ma),
+                          'inner': _sphere(1.0, mi.load_dict(_homogeneous(2.0)), exterior=ma)})
+    inner = [s for s in scene.shapes() if abs(s.bbox().extents()[0] - 2.0) < 1e-3][0].interior_medium()
+    t, ds = _distance(scene, inner, n)
+    coll = _np(ds.collided).astype(bool)
+    _assert_mean(~coll, np.exp(-2.5), 'pass-through probability')
+    d = _np(ds.mei.t)
+    sig = np.where(d < 1.0, 2.0, 0.5)
+    tr = np.where(d < 1.0, np.exp(-2.0 * d), np.exp(-2.0 - 0.5 * (d - 1.0)))
+    np.testing.assert_allclose(_np(ds.pdf_fwd)[coll], (sig * tr)[coll], rtol=2e-5)
+    # the connection side: edges from the centre to points along z, their density at a medium vertex
+    ts = (np.arange(m) + 0.5) / m * 2.0
+    z = dr.zeros(mi.Vector3f, m)
+    q = mi.Point3f(0, 0, 0) + z
+    q.z = mi.Float(ts)
+    ray = spawn_to((mi.Point3f(0, 0, 0) + z, z, 0.0), (q, z, 0.0), 0.0)
+    edge = t.edge(ray, (q, z, dr.zeros(mi.Float, m)), media.medium_array(inner, m), _sampler(m),
+                  dr.full(mi.Bool, True, m))
+    sig_q = mi.Spectrum(mi.Float(np.where(ts < 1.0, 2.0, 0.5)))
+    dens = _np(edge.pdf_l(media.DensityFactor.at(t.info, edge.medium, sig_q, dr.full(mi.Bool, True, m))))
+    through = _edge(t, (0, 0, 0), (0, 0, 3), inner, 1).pdf_l(media.DensityFactor.surface(1))
+    assert abs(dens.sum() * 2.0 / m + _np(through)[0] - 1.0) < 2e-4
+
+
 def test_delta_tracking_chromatic_one_sample_mis():
     """sigma_t (0.5, 1, 2): pdf_fwd is the channel mixture mean_c sigma_c exp(-sigma_c t) (and
     the pass-through mean_c exp(-sigma_c R)), the distances follow the mixture (KS), each
@@ -265,6 +298,12 @@ def test_delta_tracking_chromatic_one_sample_mis():
     mix = lambda x: np.mean(sig[:, None] * np.exp(-sig[:, None] * x[None, :]), axis=0)
     np.testing.assert_allclose(_np(ds.pdf_fwd)[coll], mix(tc[coll]), rtol=1e-5)
     np.testing.assert_allclose(_np(ds.pdf_fwd)[~coll], np.mean(np.exp(-sig * radius)), rtol=1e-5)
+    spec = mi.Spectrum(*[float(v) for v in sig])
+    vstart = media.DensityFactor.at(t.info, media.medium_array(inner, n), spec + dr.zeros(mi.Spectrum, n),
+                                    dr.full(mi.Bool, True, n))
+    _, dv = _distance(scene, inner, n, start=vstart)      # reverse density from a medium vertex
+    d_end = np.where(_np(dv.collided).astype(bool), _np(dv.mei.t), radius)
+    np.testing.assert_allclose(_np(dv.pdf_rev), mix(d_end), rtol=1e-5)
     cdf = lambda x: np.mean(1 - np.exp(-sig[:, None] * x[None, :]), axis=0)
     assert _ks(tc[coll], cdf, n) < KS_001 / np.sqrt(n)
     w = np.stack([_np(ds.weight[c]) for c in range(3)])
