@@ -113,17 +113,18 @@ def mean(s):
     return dr.mean(s, axis=0)
 
 
-def interaction_at(medium, ray, active, t=0.0):
+def interaction_at(medium, ray, active, t=0.0, coefficients=True):
     """A MediumInteraction3f of ``medium`` at distance ``t`` along ``ray`` (wi = -ray.d, the
-    direction towards where the ray came from, as Mitsuba's) with its coefficients filled in."""
+    direction towards where the ray came from, as Mitsuba's), with its scattering coefficients
+    filled in (one virtual call) unless ``coefficients`` is False."""
     mei = dr.zeros(mi.MediumInteraction3f, dr.width(ray.o))
     mei.p, mei.wi, mei.medium, mei.sh_frame = ray(t), -ray.d, medium, mi.Frame3f(-ray.d)
     mei.t, mei.time = t, ray.time
     if mi.is_spectral:
         mei.wavelengths = ray.wavelengths
-    sigma_s, sigma_n, sigma_t = medium.get_scattering_coefficients(mei, active)
-    mei.sigma_s, mei.sigma_n, mei.sigma_t = sigma_s, sigma_n, sigma_t
-    mei.combined_extinction = medium.get_majorant(mei, active)
+    if coefficients:
+        sigma_s, sigma_n, sigma_t = medium.get_scattering_coefficients(mei, active)
+        mei.sigma_s, mei.sigma_n, mei.sigma_t = sigma_s, sigma_n, sigma_t
     return mei
 
 
@@ -174,7 +175,7 @@ def majorant_transmittance(medium, ray, length, active):
     hit, lo, hi = medium.intersect_aabb(ray)
     lo, hi = dr.maximum(lo, 0.0), dr.minimum(hi, length)
     inside = dr.select(active & hit & (hi > lo), hi - lo, 0.0)
-    m = medium.get_majorant(interaction_at(medium, ray, active), active)[0]
+    m = medium.get_majorant(interaction_at(medium, ray, active, coefficients=False), active)[0]
     return dr.select(inside > 0, dr.exp(-m * inside), 1.0)
 
 
@@ -287,7 +288,8 @@ class MediumTracer:
     @dr.syntax
     def edge(self, ray, end, medium, sampler, active, medium_end=None):
         """The transmittance of the shadow ray ``ray`` (from a vertex in ``medium`` to the point
-        ``end`` = (q, n_q, err_q), as rays.spawn_to takes it), crossing null interfaces (each
+        ``end`` = (q, n_q, err_q), as rays.spawn_to takes it; None for a ray to infinity, towards
+        an environment or directional emitter), crossing null interfaces (each
         a hit whose BSDF has the Null flag; the medium changes by medium_after) and stopping
         with 0 at any other surface. ``medium_end``: the medium the far end says it is in
         (None: not checked); where the walk arrives in another, the edge is not made (T = 0)
@@ -308,7 +310,7 @@ class MediumTracer:
             ok[hit & ~null] = False
             ok[null & (crossings >= MAX_CROSSINGS)] = False
             going = null & (crossings < MAX_CROSSINGS)
-            ray_on, medium_on = self._cross(si, ray, end, medium)
+            ray_on, medium_on = self._cross_any(si, ray, end, medium)
             ray, medium = dr.select(going, ray_on, ray), dr.select(going, medium_on, medium)
         if medium_end is not None:
             wrong = ok & (dr.reinterpret_array(mi.UInt32, medium) != dr.reinterpret_array(mi.UInt32, medium_end))
@@ -369,7 +371,7 @@ class MediumTracer:
         collided = hom & (t < length)
         t_end = dr.select(collided, t, length)
         tr_hom = dr.select(hom, homogeneous_tr(mei.sigma_t, t_end), 1.0)
-        mei = interaction_at(medium, ray, collided, t_end)
+        mei.p, mei.t = ray(t_end), mi.Float(t_end)     # (homogeneous: the same coefficients everywhere)
         w, tmaj = dr.full(mi.Spectrum, 1.0, dr.width(t)), mi.Float(1.0)
         factor = DensityFactor(dr.select(collided, mei.sigma_t, 1.0), dr.full(mi.Float, 1.0, dr.width(t)))
         if het is not None:

@@ -91,6 +91,9 @@ def test_homogeneous_null_sphere_is_exact():
     assert np.all(_np(out.ok)) and np.all(_np(dr.reinterpret_array(mi.UInt32, out.medium)) == 0)
     inside = _edge(t, (0, 0, 0), (0.3, 0.4, 0.0), inner, 4)   # ends inside: exp(-0.5)
     np.testing.assert_allclose(_np(inside.tr), np.exp(-0.5), rtol=2e-6)
+    ray = mi.Ray3f(dr.zeros(mi.Point3f, 4), mi.Vector3f(0.6, 0.0, 0.8) + dr.zeros(mi.Vector3f, 4))
+    to_inf = t.edge(ray, None, media.medium_array(inner, 4), _sampler(4), dr.full(mi.Bool, True, 4))
+    np.testing.assert_allclose(_np(to_inf.tr), np.exp(-1.0), rtol=2e-6)   # towards an environment
 
 
 def test_nested_and_serial_media_multiply():
@@ -185,8 +188,8 @@ def test_ratio_tracking_matches_optical_depth(y, tau):
 
 
 # ---------------------------------------------------------------------- distance sampling
-def _distance(scene, medium, n, origin=(0, 0, 0), d=(0, 0, 1), seed=1, start=None):
-    t = _tracer(scene)
+def _distance(scene, medium, n, origin=(0, 0, 0), d=(0, 0, 1), seed=1, start=None, stats=None):
+    t = _tracer(scene, stats)
     ray = mi.Ray3f(mi.Point3f(origin) + dr.zeros(mi.Point3f, n), mi.Vector3f(d) + dr.zeros(mi.Vector3f, n))
     start = start or media.DensityFactor.surface(n)
     return t, t.sample_distance(ray, None, media.medium_array(medium, n), _sampler(n, seed), start,
@@ -321,8 +324,11 @@ def test_delta_tracking_heterogeneous_is_unbiased():
     weight left out."""
     n = 1 << 16
     scene = _grid_box([[0.5, 0.5], [0.25, 1.0]], 2.0)
-    t, ds = _distance(scene, None, n, origin=(-3, 0.5, 0.2), d=(1, 0, 0))
+    stats = MediumStats()
+    t, ds = _distance(scene, None, n, origin=(-3, 0.5, 0.2), d=(1, 0, 0), stats=stats)
     coll = _np(ds.collided).astype(bool)
+    stats.end_pass()
+    assert stats.summary()['real_collisions'] == coll.sum() and stats.summary()['null_collisions'] > 0
     x = _np(ds.mei.p.x)
     sigma = np.where(x < 0, 0.5, 2.0)
     w = _np(ds.weight[0])
