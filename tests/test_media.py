@@ -96,6 +96,26 @@ def test_homogeneous_null_sphere_is_exact():
     np.testing.assert_allclose(_np(to_inf.tr), np.exp(-1.0), rtol=2e-6)   # towards an environment
 
 
+def test_homogeneous_scene_traces_no_tracking(monkeypatch):
+    """A scene with homogeneous media only (MediaInfo.heterogeneous False) traces neither ratio
+    nor delta tracking: transmittance and distance sampling run with both, and the majorant's
+    transmittance, replaced by functions that raise."""
+    scene = mi.load_dict({'type': 'scene', 'sph': _sphere(1.0, _homogeneous([0.5, 1.0, 2.0]))})
+    t = _tracer(scene)
+    assert not t.info.heterogeneous and t.info.chromatic
+
+    def refuse(*args, **kwargs):
+        raise AssertionError('tracking traced in a homogeneous-only scene')
+    monkeypatch.setattr(media.MediumTracer, 'ratio_track', refuse)
+    monkeypatch.setattr(media.MediumTracer, 'delta_track', refuse)
+    monkeypatch.setattr(media, 'majorant_transmittance', refuse)
+    inner = scene.shapes()[0].interior_medium()
+    out = _edge(t, (0, 0, 0), (0, 0, 3), inner, 4)
+    np.testing.assert_allclose(_np(out.tr), np.exp(-np.array([0.5, 1.0, 2.0]))[:, None] + np.zeros(4), rtol=2e-6)
+    _, ds = _distance(scene, inner, 64)
+    assert np.all(np.isfinite(_np(ds.weight)))
+
+
 def test_nested_and_serial_media_multiply():
     """Nested (a sphere of sigma_t 2 inside one of 0.5, by interior/exterior) and two media in
     series: T is the product. Catches: the exterior medium of the inner sphere ignored (vacuum
@@ -443,14 +463,26 @@ def _kernel_hashes(scene):
     return [k['hash'] for k in hist if k['type'] == dr.KernelType.JIT]
 
 
-def test_scene_without_media_traces_the_same_kernels():
+def test_scene_without_media_traces_the_same_kernels(monkeypatch):
     """A Cornell box's kernels are the same before and after the media analysis and a
-    MediumTracer were built for it (nothing of media.py enters a scene without media), and the
-    analysis says it has none."""
+    MediumTracer were built for it, the analysis says it has none, and a render of it calls
+    nothing of media.py (every function and method replaced by one that raises: once media are
+    wired, their code must stay behind the Python flag MediaInfo.any). The hashes of whole
+    renders on two trees: scripts/kernel_hashes.py."""
     from helpers import cornell_scene
     scene = cornell_scene(8)
     before = _kernel_hashes(scene)
     info = media_info(scene)
     assert (info.any, info.heterogeneous, info.chromatic) == (False, False, False)
     _tracer(scene)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError('media code called for a scene without media')
+    for name in ('medium_after', 'medium_at_sensor', 'medium_at_emitter', 'interaction_at', 'pdf_l',
+                 'majorant_transmittance', 'homogeneous_tr', 'is_null'):
+        monkeypatch.setattr(media, name, refuse)
+    for cls in (media.MediumTracer, media.MediumVertex, media.DensityFactor):
+        for name, value in list(vars(cls).items()):
+            if callable(value) and not name.startswith('__'):
+                monkeypatch.setattr(cls, name, refuse)
     assert _kernel_hashes(scene) == before
