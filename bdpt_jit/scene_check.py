@@ -269,3 +269,35 @@ class VertexNeeds:
         self.surface_tangents = scene_perturbs_normals(scene)
         self.depth = not all(mi.has_flag(b.flags(), mi.BSDFFlags.Smooth) and
                              not mi.has_flag(b.flags(), mi.BSDFFlags.Delta) for b in bsdfs)
+
+
+def scene_media(scene: mi.Scene, sensor: mi.Sensor = None) -> list:
+    """Every medium of the scene (shape interiors and exteriors, emitters, the sensor), each once."""
+    found = {}
+    objs = [m for s in scene.shapes() for m in (s.interior_medium(), s.exterior_medium())]
+    objs += [e.get_medium() for e in scene.emitters()]
+    objs += [s.get_medium() for s in ([sensor] if sensor is not None else scene.sensors())]
+    for m in objs:
+        if m is not None:
+            found[int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(m))[0])] = m
+    return list(found.values())
+
+
+def _chromatic(medium) -> bool:
+    """A homogeneous medium whose sigma_t differs between the channels of the variant (in
+    spectral variants: at four wavelengths across the visible range)."""
+    mei = dr.zeros(mi.MediumInteraction3f, 1)
+    if mi.is_spectral:
+        mei.wavelengths = mi.Spectrum(400.0, 500.0, 600.0, 700.0)
+    sigma_t = np.array(medium.get_scattering_coefficients(mei, True)[2]).ravel()
+    return bool(np.ptp(sigma_t) > 0)
+
+
+def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
+    """media.MediaInfo of the scene: whether it has media, a heterogeneous one (ratio and delta
+    tracking traced), a chromatic homogeneous one (a channel chosen per distance sample)."""
+    from .media import MediaInfo
+    media = scene_media(scene, sensor)
+    return MediaInfo(any_medium=bool(media),
+                     heterogeneous=any(not m.is_homogeneous() for m in media),
+                     chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media))

@@ -45,3 +45,33 @@ class RayStats:
         t['zero_contribution_rays'] = (t['camera_rays_missed'] + t['light_rays_missed']
                                        + t['shadow_rays_blocked'])
         return t
+
+
+MEDIUM_NAMES = (
+    'medium_inconsistencies',  # edges not made: their ends disagree about the medium between them
+    'real_collisions',         # distance samples that ended at a real collision (medium vertices)
+    'null_collisions',         # tentative collisions rejected by delta tracking or weighed by ratio tracking
+)
+
+
+class MediumStats(RayStats):
+    """The media's counters (media.MediumTracer), kept apart from RayStats so that renders
+    without media count, trace and report exactly as before; RayStats.summary can merge them
+    once media are wired."""
+
+    def __init__(self):
+        self.buf = dr.zeros(mi.UInt32, len(MEDIUM_NAMES))
+        self.totals = {name: 0 for name in MEDIUM_NAMES}
+
+    def count(self, name, active):
+        dr.scatter_reduce(dr.ReduceOp.Add, self.buf, mi.UInt32(1),
+                          mi.UInt32(MEDIUM_NAMES.index(name)), active)
+
+    def end_pass(self):
+        import numpy as np
+        for name, v in zip(MEDIUM_NAMES, np.array(self.buf, dtype=np.uint64)):
+            self.totals[name] += int(v)
+        self.buf = dr.zeros(mi.UInt32, len(MEDIUM_NAMES))
+
+    def summary(self):
+        return dict(self.totals)
