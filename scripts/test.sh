@@ -5,7 +5,7 @@
 # one process), each test file on one worker (--dist loadfile), so that a file's kernels are
 # compiled once: Dr.Jit compiles a kernel on one thread, and a second worker renders meanwhile.
 # Measured on 2 cores with an empty kernel cache and no references (a fresh clone): 13 min 21 s
-# with two workers, against 18-20 min in one process (docs/performance.md, sixth session).
+# with two workers, against 20 min 40 s in one process (docs/performance.md, sixth session).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh"
