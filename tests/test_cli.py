@@ -215,6 +215,10 @@ ERROR_CASES = {
     'strategies with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--strategies'], '--strategies'),
     'bdpt option with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--mis', 'balance'], '--mis'),
     'unknown variant': (None, [CORNELL, '-D', 'res=8', '--variant', 'nosuch_rgb'], 'nosuch_rgb'),
+    # refused by the plugin's constructor, which Mitsuba reports as an "unknown plugin": the
+    # command keeps only the plugin's own words
+    'parameters that exclude each other': (None, [CORNELL, '-D', 'res=8', '--connections', '4'],
+                                           r"error: bdpt: parameter 'connections' \(4\) needs the light vertex cache"),
 }
 
 

@@ -18,6 +18,7 @@ class Interrupted(Exception):
     """Ctrl-C before anything could be written; exit status 130."""
 
 
+_REFUSED = re.compile(r'^At dictionary node "[^"]*": failed to instantiate unknown plugin of type "bdpt": (?=bdpt: )')
 _SRC_PREFIX = re.compile(r'\[[\w.+-]+:\d+\]\s*|\[[A-Z]\w*\]\s+')   # [parser.cpp:451], [PluginManager]
 
 
@@ -30,6 +31,9 @@ def error_text(e):
     if 'Traceback (most recent call last)' in text:
         text = _traceback_line(text)
     text = _SRC_PREFIX.sub('', text)
+    # a plugin constructor's refusal, which Mitsuba words 'failed to instantiate unknown plugin of
+    # type "bdpt": bdpt: ...': the plugin's own sentence is the message
+    text = _REFUSED.sub('', text)
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     return ' '.join(lines[:1] + [ln.lstrip('- ') for ln in lines[1:]]) if lines else type(e).__name__
 
