@@ -87,8 +87,10 @@ def _bdpt_statistics(info):
         stats['light_vertex_levels'] = info['light_vertex_levels']
     if 'light_cache' in info:              # light_paths > 0 (light_cache.py)
         lc = info['light_cache']
-        stats['light_cache'] = (f"{lc['light_paths_per_sample']:g} light subpaths a sample, {lc['connections']} "
-                                f"connections a camera vertex, {lc['pilot_vertices_per_path']:.3g} vertices a subpath")
+        c = lc['connections']
+        stats['light_cache'] = (f"{lc['light_paths_per_sample']:g} light subpaths per camera sample, {c} "
+                                f"connection{'' if c == 1 else 's'} per camera vertex, "
+                                f"{lc['pilot_vertices_per_path']:.3g} vertices per light subpath (pilot)")
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
         stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of trials; efficiency "
