@@ -17,7 +17,12 @@ SUPPORTED_SENSORS = tuple(CAMERAS)     # a camera model registered in cameras.py
 
 
 class UnsupportedSceneError(ValueError):
-    """The scene uses a plugin or feature that ``bdpt`` does not render (yet)."""
+    """The scene uses a plugin or feature that ``bdpt`` does not render (yet). ``alternative``:
+    the Mitsuba integrator that renders it (the command suggests it), None: any."""
+
+    def __init__(self, message, alternative=None):
+        super().__init__(message)
+        self.alternative = alternative
 
 
 def check_variant():
@@ -121,8 +126,8 @@ def _medium_name(medium) -> str:
 
 def _refuse_medium(where, medium):
     raise UnsupportedSceneError(
-        f"bdpt: participating media are not supported: {where} has the medium {_medium_name(medium)} "
-        "(render it with Mitsuba's volpath)")
+        f"bdpt: participating media are not supported: {where} has the medium {_medium_name(medium)}",
+        alternative='volpath')
 
 
 def check_scene(scene: mi.Scene, sensor: mi.Sensor):
@@ -172,7 +177,9 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
     for shape in scene.shapes():
         for side, medium in (('interior', shape.interior_medium()), ('exterior', shape.exterior_medium())):
             if medium is not None:
-                _refuse_medium(f"the shape '{shape.id()}' ({side})", medium)
+                shape_id = str(shape.id())
+                named = f"the shape '{shape_id}'" if shape_id else f"a shape '{_plugin_name(shape)}'"
+                _refuse_medium(f"{named} ({side})", medium)
 
 
 def has_instances(scene: mi.Scene) -> bool:

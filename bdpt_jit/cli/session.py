@@ -243,7 +243,8 @@ def prepare_bdpt(args, scene, integ):
             return integ
         ctx = integ.make_context(scene, sensor)     # checks the scene too
     except UnsupportedSceneError as e:
-        raise CLIError(f"{e} (render it with another integrator, e.g. --integrator path)") from None
+        alt = e.alternative or 'path'
+        raise CLIError(f"{e} (render it with another integrator, e.g. --integrator {alt})") from None
     crop = sensor.film().crop_size()
     n_pixels = int(crop[0]) * int(crop[1])
     spp_pass, _, pixels = next(plan_passes(args.pass_spp, n_pixels, integ.bytes_per_sample(ctx),
