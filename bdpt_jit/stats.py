@@ -16,14 +16,16 @@ NAMES = (
 
 
 class RayStats:
+    NAMES = NAMES                 # the counters, in the order of ``buf``
+
     def __init__(self):
-        self.buf = dr.zeros(mi.UInt32, len(NAMES))
-        self.totals = {name: 0 for name in NAMES}
+        self.buf = dr.zeros(mi.UInt32, len(self.NAMES))
+        self.totals = {name: 0 for name in self.NAMES}
 
     def count(self, name, active):
         """Add the active lanes to counter ``name`` (pre-reduced within each packet)."""
         dr.scatter_reduce(dr.ReduceOp.Add, self.buf, mi.UInt32(1),
-                          mi.UInt32(NAMES.index(name)), active)
+                          mi.UInt32(self.NAMES.index(name)), active)
 
     def ray(self, kind, active, hit):
         self.count(f'{kind}_rays', active)
@@ -35,9 +37,9 @@ class RayStats:
 
     def end_pass(self):
         import numpy as np
-        for name, v in zip(NAMES, np.array(self.buf, dtype=np.uint64)):
+        for name, v in zip(self.NAMES, np.array(self.buf, dtype=np.uint64)):
             self.totals[name] += int(v)
-        self.buf = dr.zeros(mi.UInt32, len(NAMES))
+        self.buf = dr.zeros(mi.UInt32, len(self.NAMES))
 
     def summary(self):
         t = dict(self.totals)
@@ -58,20 +60,7 @@ class MediumStats(RayStats):
     """The media's counters (media.MediumTracer), kept apart from RayStats so that renders
     without media count, trace and report exactly as before; RayStats.summary can merge them
     once media are wired."""
-
-    def __init__(self):
-        self.buf = dr.zeros(mi.UInt32, len(MEDIUM_NAMES))
-        self.totals = {name: 0 for name in MEDIUM_NAMES}
-
-    def count(self, name, active):
-        dr.scatter_reduce(dr.ReduceOp.Add, self.buf, mi.UInt32(1),
-                          mi.UInt32(MEDIUM_NAMES.index(name)), active)
-
-    def end_pass(self):
-        import numpy as np
-        for name, v in zip(MEDIUM_NAMES, np.array(self.buf, dtype=np.uint64)):
-            self.totals[name] += int(v)
-        self.buf = dr.zeros(mi.UInt32, len(MEDIUM_NAMES))
+    NAMES = MEDIUM_NAMES
 
     def summary(self):
         return dict(self.totals)

@@ -250,18 +250,10 @@ def test_vcm_caustic_through_glass_with_the_cache(light_paths, connections):
 def test_vcm_closed_sphere_with_the_cache():
     """Merging everywhere inside the closed emitting sphere (test_merging.test_closed_sphere: a
     merge is exact there, eta = pi r^2 N ~ 8 carries much weight): Le sum rho^k with the cache."""
-    from test_analytic import sphere_mesh
+    from test_merging import enclosure_scene
     from bdpt_jit.merge import scene_radius
     rho, max_depth = 0.8, 4
-    scene = mi.load_dict({
-        'type': 'scene',
-        'sensor': {'type': 'perspective', 'fov': 60,
-                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
-                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
-                            'rfilter': {'type': 'box'}},
-                   'sampler': {'type': 'independent'}},
-        'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
-    })
+    scene = enclosure_scene(rho)
     b = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'radius': 0.05 / scene_radius(scene),
                                'radius_alpha': 1.0, 'merge_everywhere': True, 'light_paths': 0.5,
                                'connections': 2}, spp=16, batches=16)

@@ -216,6 +216,19 @@ def _distance(scene, medium, n, origin=(0, 0, 0), d=(0, 0, 1), seed=1, start=Non
                                 dr.full(mi.Bool, True, n))
 
 
+def _edges_along_z(tracer, medium, m, length):
+    """The connection side: m edges from the origin (in ``medium``) to points at the midpoints of
+    m equal steps along +z up to ``length``; (their distances, MediumTracer.edge of them)."""
+    ts = (np.arange(m) + 0.5) / m * length
+    z = dr.zeros(mi.Vector3f, m)
+    q = mi.Point3f(0, 0, 0) + z
+    q.z = mi.Float(ts)
+    ray = spawn_to((mi.Point3f(0, 0, 0) + z, z, 0.0), (q, z, 0.0), 0.0)
+    edge = tracer.edge(ray, (q, z, dr.zeros(mi.Float, m)), media.medium_array(medium, m), _sampler(m),
+                       dr.full(mi.Bool, True, m))
+    return ts, edge
+
+
 def _ks(samples, cdf, n):
     x = np.sort(samples)
     emp_hi = np.arange(1, len(x) + 1) / n
@@ -255,13 +268,7 @@ def test_delta_tracking_homogeneous_distribution_and_densities():
     np.testing.assert_allclose(_np(dv.pdf_rev), sigma * np.exp(-sigma * d_end), rtol=1e-5)
     # the connection side's density at the same points, and the partition of unity
     m = 4096
-    ts = (np.arange(m) + 0.5) / m * radius
-    z = dr.zeros(mi.Vector3f, m)
-    q = mi.Point3f(0, 0, 0) + z
-    q.z = mi.Float(ts)
-    ray = spawn_to((mi.Point3f(0, 0, 0) + z, z, 0.0), (q, z, 0.0), 0.0)
-    edge = t.edge(ray, (q, z, dr.zeros(mi.Float, m)), media.medium_array(inner, m), _sampler(m),
-                  dr.full(mi.Bool, True, m))
+    ts, edge = _edges_along_z(t, inner, m, radius)
     sig = dr.full(mi.Spectrum, sigma, m)
     dens = _np(edge.pdf_l(media.DensityFactor.at(t.info, media.medium_array(inner, m), sig, dr.full(mi.Bool, True, m))))
     through = _edge(t, (0, 0, 0), (0, 0, radius + 1), inner, 1).pdf_l(media.DensityFactor.surface(1))
@@ -289,13 +296,7 @@ def test_delta_tracking_across_nested_media():
     tr = np.where(d < 1.0, np.exp(-2.0 * d), np.exp(-2.0 - 0.5 * (d - 1.0)))
     np.testing.assert_allclose(_np(ds.pdf_fwd)[coll], (sig * tr)[coll], rtol=2e-5)
     # the connection side: edges from the centre to points along z, their density at a medium vertex
-    ts = (np.arange(m) + 0.5) / m * 2.0
-    z = dr.zeros(mi.Vector3f, m)
-    q = mi.Point3f(0, 0, 0) + z
-    q.z = mi.Float(ts)
-    ray = spawn_to((mi.Point3f(0, 0, 0) + z, z, 0.0), (q, z, 0.0), 0.0)
-    edge = t.edge(ray, (q, z, dr.zeros(mi.Float, m)), media.medium_array(inner, m), _sampler(m),
-                  dr.full(mi.Bool, True, m))
+    ts, edge = _edges_along_z(t, inner, m, 2.0)
     sig_q = mi.Spectrum(mi.Float(np.where(ts < 1.0, 2.0, 0.5)))
     dens = _np(edge.pdf_l(media.DensityFactor.at(t.info, edge.medium, sig_q, dr.full(mi.Bool, True, m))))
     through = _edge(t, (0, 0, 0), (0, 0, 3), inner, 1).pdf_l(media.DensityFactor.surface(1))

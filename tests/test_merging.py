@@ -170,6 +170,21 @@ def test_vcm_without_specular_surfaces_is_bdpt():
     assert not np.array_equal(np.array(mi.render(scene, integrator=everywhere, spp=4, seed=3)), bdpt)
 
 
+def enclosure_scene(rho):
+    """The closed emitting sphere (test_analytic.sphere_mesh, a fine mesh) seen from inside at
+    32x32: the radiance is Le sum rho^k everywhere."""
+    from test_analytic import sphere_mesh
+    return mi.load_dict({
+        'type': 'scene',
+        'sensor': {'type': 'perspective', 'fov': 60,
+                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
+                            'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent'}},
+        'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
+    })
+
+
 @pytest.mark.parametrize('technique,mis,radius', [('vcm', 'power', 0.05), ('vcm', 'balance', 0.05),
                                                   ('vm', 'power', 0.1)])
 def test_closed_sphere(technique, mis, radius):
@@ -183,17 +198,9 @@ def test_closed_sphere(technique, mis, radius):
     weight (eta = pi r^2 N ~ 8): leaving the merging term out of the connections' recursion
     (mis.on_scatter) moves the mean by +7% (over 100 sigma), a lost d_vm update or a wrong
     normalisation likewise."""
-    from test_analytic import LE, sphere_mesh
+    from test_analytic import LE
     rho, max_depth = 0.8, 4
-    scene = mi.load_dict({
-        'type': 'scene',
-        'sensor': {'type': 'perspective', 'fov': 60,
-                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, 0, 0.3], target=[0, 0, -1], up=[0, 1, 0]),
-                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32, 'pixel_format': 'rgb',
-                            'rfilter': {'type': 'box'}},
-                   'sampler': {'type': 'independent'}},
-        'sphere': sphere_mesh(rho, n_theta=24, n_phi=48),
-    })
+    scene = enclosure_scene(rho)
     # (a diffuse enclosure: vcm merges only with merge_everywhere, and would otherwise be bdpt)
     everywhere = {'merge_everywhere': True} if technique == 'vcm' else {}
     b = render_batches(scene, {'type': 'bdpt', 'max_depth': max_depth, 'technique': technique, 'mis': mis,
