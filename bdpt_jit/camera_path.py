@@ -17,12 +17,19 @@ iterations, and the temporaries of each strategy stay inside its function."""
 import drjit as dr
 import mitsuba as mi
 
-from . import transport
+from . import media_path, transport
 from .endpoints import AreaKinds
 from .jitmath import pdf_w_to_a, safe_div
+from .media import medium_at_sensor
 from .mis import EmitterDensities, MISState
 from .transport import Subpath
 from .vertex import IMPORTANCE, RADIANCE, Vertex, visibility, visible
+
+
+def _cos(v, d):
+    """The cosine at vertex ``v`` towards ``d`` for a change of measure (jitmath.pdf_w_to_a
+    takes its absolute value): 1 at a medium vertex (media_path.PathVertex)."""
+    return dr.dot(v.si.n, d) if isinstance(v, Vertex) else v.cos(d)
 
 
 class CameraTracer:
@@ -123,12 +130,16 @@ class CameraTracer:
         # never `active &=` on a parameter: Dr.Jit's in-place operators would narrow the
         # caller's mask too (it then dropped the connections of failed emitter samples)
         active = active & (ds.pdf > 0) & (dr.max(em_w) > 0)
-        tr = visibility(c, v.spawn_to_emitter(c, ds), active)
+        ray = v.spawn_to_emitter(c, ds)
+        e = self.emitter_edge(v, ds, ray, active) if c.media is not None else None
+        tr = visibility(c, ray, active) if e is None else e.tr
         active &= visible(tr)
         f, pdf_bsdf_w, pdf_rev_w, _ = v.eval(c, ds.d, RADIANCE, active)
         k = c.emitters.kinds(ds.emitter)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
         pdf_direct_w, cos_e = c.emitters.direct_terms(ds, k)
+        if e is not None:   # media: the s=0 strategy reaches the emitter point with T, the light subpath z with pdf_l
+            pdf_bsdf_w, pdf_emit_w = pdf_bsdf_w * e.pdf_l_far, pdf_emit_w * e.pdf_l_near
         w = self.mis.weight_s1(sub.mis, pdf_bsdf_w, pdf_rev_w, v.cos(ds.d),
                                EmitterDensities(pdf_direct_w, pdf_emit_w, cos_e, k.delta), merge_z)
         value = sub.beta * f * tr * em_w
@@ -155,24 +166,38 @@ class CameraTracer:
         # The guard where the contribution is formed: vertices ~1e-19 apart give a subnormal
         # dist2 whose inverse overflows (and a NaN once the power weight, 0 there, multiplies it)
         ok &= ok_l & (dr.max(contrib) > 0) & (dr.max(contrib) < dr.inf)
-        tr = visibility(c, v.spawn_to(c, y.p, y.si.n, y.err), ok)
+        ray = v.spawn_to(c, y.p, y.si.n, y.err)
+        e = media_path.connection_edge(c, self.ps.sampler, ray, v, y, d, ok) if c.media is not None else None
+        tr = visibility(c, ray, ok) if e is None else e.tr
         ok &= visible(tr)
         contrib = contrib * tr
         if scale is not None:
             contrib = contrib * scale
-        w = self.mis.weight_connect(
-            rec, sub.mis,
-            pdf_w_to_a(pdf_c_w, dr.dot(y.si.n, d), dist2),
-            pdf_w_to_a(pdf_l_w, dr.dot(si.n, d), dist2),
-            pdf_l_rev_w, pdf_c_rev_w, merge_z)
+        pdf_cam_to_light_a = pdf_w_to_a(pdf_c_w, _cos(y, d), dist2)
+        pdf_light_to_cam_a = pdf_w_to_a(pdf_l_w, _cos(v, d), dist2)
+        if e is not None:   # media: each end sampled across the edge has its distance density
+            pdf_cam_to_light_a, pdf_light_to_cam_a = pdf_cam_to_light_a * e.pdf_l_far, pdf_light_to_cam_a * e.pdf_l_near
+        w = self.mis.weight_connect(rec, sub.mis, pdf_cam_to_light_a, pdf_light_to_cam_a,
+                                    pdf_l_rev_w, pdf_c_rev_w, merge_z)
         self.add_layer(v_depth + 1, sub.depth + 1, contrib, w, ok)
         return dr.select(ok, contrib * w, 0.0)
+
+    def emitter_edge(self, v, ds, ray, active):
+        """The shadow ray ``ray`` from camera vertex ``v`` to the emitter sample ``ds`` through
+        media: media_path.EdgeTerms (far end: the emitter point, a surface)."""
+        c = self.ctx
+        end = (ds.p, ds.n, c.emitters.error_at(ds))
+        media = (v.medium_towards(ds.d), c.emitter_media.medium(ds.emitter, ds.n, -ds.d, active))
+        factors = (v.density_factor(c.media.info), media_path.surface_start(dr.width(ds.p)))
+        return media_path.edge_terms(c, self.ps.sampler, ray, end, media, factors, active)
 
     @dr.syntax
     def connect_all(self, idx, v, sub, active, merge_z=True):
         """Sum of the connections of camera vertex ``v`` to the light subpath of its sample."""
         c, store = self.ctx, self.ps.store
         n_light, slot_of = store.count, store.slot    # read before the loop
+        # heterogeneous media: ratio tracking on each connection draws samples (loop state)
+        sampler = self.ps.sampler if c.media is not None and c.media.info.heterogeneous else None
         # stored depths grow with j (depth_j >= j + 1): beyond j_end max_depth forbids all
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(sub.depth + 1, c.max_depth_edges))
         L = mi.Spectrum(0.0)
@@ -180,6 +205,7 @@ class CameraTracer:
         while dr.hint(active & (j < j_end), label='bdpt_connect'):
             L += self.strategy_st(slot_of(j, idx), j, v, sub, active, merge_z)
             j += 1
+            sampler = sampler       # (named in the loop: its state is loop state)
         return L
 
     @dr.syntax
@@ -202,7 +228,14 @@ class CameraTracer:
         c = self.ctx
         n, max_edges = self.ps.n, c.max_depth_edges
         film_pos, ray, beta = self.primary()
-        si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
+        if c.media is None:
+            si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
+            p = si.p
+        else:       # distance sampling from the camera's medium (media_path.MediumHit)
+            si, beta, pdf_fwd_l, pdf_rev_l = media_path.sample_step(
+                c, self.ps.sampler, ray, medium_at_sensor(c.sensor, n), media_path.surface_start(n), beta,
+                dr.full(mi.Bool, True, n))
+            p = si.p
         if c.stats is not None:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         self.film_pos = film_pos
@@ -211,10 +244,13 @@ class CameraTracer:
             L += self.strategy_s0_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
                                       MISState(mi.Float(0), mi.Float(0)), ~si.is_valid() & (max_edges >= 1))
         alpha = dr.select(si.is_valid(), 1.0, 0.0)
-        aov_values = self.aov_values(si, ray) if c.aovs else ()
+        aov_values = self.aov_values(si if c.media is None else si.si, ray) if c.aovs else ()
         # the first edge's length as every other strategy measures it (from the lens point)
-        dist2_cam = c.camera.first_edge_dist2(ray, si.p)
-        st = self.mis.camera_start(c.camera.pdf_w(ray.d), dist2_cam, dr.abs(dr.dot(si.n, ray.d)))
+        dist2_cam = c.camera.first_edge_dist2(ray, p)
+        cos_hit = dr.abs(dr.dot(si.n, ray.d)) if c.media is None else si.cos(ray.d)
+        st = self.mis.camera_start(c.camera.pdf_w(ray.d), dist2_cam, cos_hit)
+        if c.media is not None:
+            st = self.mis.distance(st, pdf_fwd_l, pdf_rev_l)
         sub = Subpath(beta, dr.max(beta), st, mi.UInt32(1), si.is_valid() & (max_edges >= 1))
         return film_pos, ray, si, L, alpha, aov_values, sub
 
@@ -237,7 +273,9 @@ class CameraTracer:
         return sub.active
 
     def vertex(self, si, ray):
-        return Vertex.at(self.ctx, si, ray)
+        if self.ctx.media is None:
+            return Vertex.at(self.ctx, si, ray)
+        return media_path.PathVertex.at(self.ctx, si, ray)
 
     def at_vertex(self, v, ray, sub, carry):
         """At camera vertex z: the hit (s=0), emitter sampling (s=1), the connections (s >= 2)

@@ -19,8 +19,9 @@ from .params import ParameterError, aov_channel_names, parse_aovs
 from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .sampling import Sampling
-from .scene_check import VertexNeeds, has_instances, scene_has_delta_bsdf, scene_perturbs_normals
-from .stats import RayStats
+from .scene_check import (UnsupportedSceneError, VertexNeeds, describe_medium, has_instances, media_info,
+                          scene_has_delta_bsdf, scene_media, scene_perturbs_normals)
+from .stats import MediumStats, RayStats
 from .store import record_type
 from .strategies import StrategySet
 
@@ -69,6 +70,10 @@ class Context:
     sampling           sampling.Sampling, or gradients.ADSampling in a differentiable pass
     aovs, aov_names    the AOVs asked for (params.parse_aovs) and their film channels
     light_cache        light_cache.CacheSettings, or None: the classic estimator (parameter light_paths)
+    media              media.MediumTracer of a scene with participating media, or None (none of
+                       the medium code is traced then)
+    emitter_media      media_path.EmitterMedia (the medium each emitter lies in), or None
+    medium_stats       stats.MediumStats (parameter statistics, a scene with media), or None
     """
 
     def __init__(self, scene, sensor, settings, spp, ad=False, ad_geometry=()):
@@ -100,7 +105,8 @@ class Context:
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
         self.exact_adjoint = scene_perturbs_normals(scene)
-        self.record = record_type(VertexNeeds(scene), merging=self.mis.mis_merges)
+        self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
+        self.record = record_type(VertexNeeds(scene), merging=self.mis.mis_merges, media=self.media is not None)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
         self.diffuse = None if ad else diffuse_table(scene)
         # opaque: literals would be baked into the kernels and recompile them for every spp
@@ -120,6 +126,30 @@ class Context:
         self.sampling = ADSampling(self) if ad else Sampling(self)
         self.light_cache = self.cache_settings(settings)
         self.evaluate_tables()
+
+    def media_setup(self, scene, sensor, settings, technique):
+        """(media.MediumTracer, media_path.EmitterMedia, stats.MediumStats or None) of a scene
+        with participating media; (None, None, None) without: no medium code is traced. Refuses
+        what is not built with media yet, naming the parameter and the medium."""
+        info = media_info(scene, sensor)
+        if not info.any:
+            return None, None, None
+        from .media import MediumTracer
+        from .media_path import EmitterMedia
+        first = describe_medium(scene_media(scene, sensor)[0])
+        if technique in ('vcm', 'vm'):
+            raise UnsupportedSceneError(
+                f"bdpt: technique '{technique}' (vertex merging) is not available with participating media "
+                f"yet (the scene has the medium {first}): use technique 'bdpt', 'pt' or 'lt'")
+        if self.ad:
+            raise UnsupportedSceneError(
+                f"bdpt: gradients with participating media are not available yet (the scene has the medium "
+                f"{first}): render it without derivatives, or differentiate with Mitsuba's prbvolpath")
+        if float(settings.get('light_paths', -1.0)) != -1.0:
+            raise ParameterError(f"bdpt: parameter 'light_paths' (the light vertex cache) is not available with "
+                                 f"participating media yet (the scene has the medium {first}): use light_paths -1")
+        stats = MediumStats() if settings['statistics'] else None
+        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene), stats
 
     def cache_settings(self, settings):
         """light_cache.CacheSettings of the parameters light_paths and connections, or None."""

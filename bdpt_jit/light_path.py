@@ -6,8 +6,9 @@ connect to (s>=2), written to the light-vertex store (store.LightStore)."""
 import drjit as dr
 import mitsuba as mi
 
-from . import transport
+from . import media_path, transport
 from .jitmath import pdf_w_to_a, safe_div
+from .media import medium_at_sensor
 from .rays import spawn_to
 from .transport import Subpath
 from .vertex import IMPORTANCE, Vertex, visibility, visible
@@ -46,15 +47,24 @@ class LightTracer:
             self.strategy_s1_t1(u_cam, e, active & e.kinds.area)
 
         active &= c.max_depth_edges >= 2
-        si = c.sampling.intersect(e.ray, active)
-        beta, si = c.sampling.first_hit(e, si, u_dir, active)
+        if c.media is None:
+            si = c.sampling.intersect(e.ray, active)
+            beta, si = c.sampling.first_hit(e, si, u_dir, active)
+            y1 = si
+        else:       # distance sampling from the emitter's medium (media_path.MediumHit)
+            si, beta, pdf_fwd_l, pdf_rev_l = media_path.sample_step(
+                c, sampler, e.ray, c.emitter_media.medium(e.emitter, e.ps.n, e.d, active),
+                media_path.surface_start(self.n), e.beta, active)
+            y1 = si.interaction()
         if c.stats is not None:
             c.stats.ray('light', active, si.is_valid())
         active &= si.is_valid()
-        pdf_direct = c.emitters.pdf_direct_first_hit(e, si, active)
-        cos_hit = dr.abs(dr.dot(si.n, e.ray.d))
-        dist2 = c.emitters.first_edge_dist2(e, si)
+        pdf_direct = c.emitters.pdf_direct_first_hit(e, y1, active)
+        cos_hit = dr.abs(dr.dot(si.n, e.ray.d)) if c.media is None else si.cos(e.ray.d)
+        dist2 = c.emitters.first_edge_dist2(e, y1)
         st = self.mis.light_start(e.pdf_emit_w, e.cos_e, e.kinds.delta, pdf_direct, dist2, cos_hit)
+        if c.media is not None:
+            st = self.mis.distance(st, pdf_fwd_l, pdf_rev_l)
         return si, Subpath(beta, dr.max(beta), st, dr.full(mi.UInt32, 1, self.n), active)
 
     # ------------------------------------------------------------------ strategies
@@ -69,11 +79,16 @@ class LightTracer:
         si_to_cam.wi = si_e.to_local(ds.d)
         le = e.emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        tr = visibility(c, spawn_to((ps.p, ps.n, e.err), (ds.p, mi.Normal3f(0.0), 0.0), ps.time, c.offsets.far_rel,
-                                    si_e.wavelengths), ok)
+        ray = spawn_to((ps.p, ps.n, e.err), (ds.p, mi.Normal3f(0.0), 0.0), ps.time, c.offsets.far_rel,
+                       si_e.wavelengths)
+        et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.n, ds.d, ok), None, ok) \
+            if c.media is not None else None
+        tr = visibility(c, ray, ok) if et is None else et.tr
         ok &= visible(tr)
         pdf_light_a = e.pdf_light_a
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), cos_g, dr.square(ds.dist))  # We |cos| / d^2
+        if et is not None:      # media: the camera subpath reaches y0 (a surface) with the edge's T
+            pdf_cam_a = pdf_cam_a * et.pdf_l_near
         w = self.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
         value = le * tr * dr.abs(cos_g) * (sensor_w * safe_div(1.0, pdf_light_a)) * self.splat_scale
         if not isinstance(self.wl_weight, float):
@@ -91,9 +106,14 @@ class LightTracer:
         ok = active & (ds.pdf > 0)
         f, pdf_fwd_w, pdf_rev_w, valid = v.eval(c, ds.d, IMPORTANCE, ok)
         ok &= valid & (dr.max(f) > 0)
-        tr = visibility(c, v.spawn_to(c, ds.p, mi.Normal3f(0.0), 0.0), ok)
+        ray = v.spawn_to(c, ds.p, mi.Normal3f(0.0), 0.0)
+        et = self.camera_edge(ray, ds, v.medium_towards(ds.d), v, ok) if c.media is not None else None
+        tr = visibility(c, ray, ok) if et is None else et.tr
         ok &= visible(tr)
-        pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
+        if et is None:
+            pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
+        else:       # media: the camera subpath reaches y with the edge's distance density there
+            pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), v.cos(ds.d), dr.square(ds.dist)) * et.pdf_l_near
         w = self.mis.weight_t1(sub.mis.d_vcm, sub.mis.d_vc, pdf_cam_a, pdf_rev_w)
         value = sub.beta * f * tr * sensor_w * self.splat_scale
         if not isinstance(self.wl_weight, float):
@@ -101,6 +121,17 @@ class LightTracer:
         self.ps.film.put_splat(ds.uv, value * w, ok, si.wavelengths)
         if c.layers is not None:
             c.layers.add(sub.depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
+
+    def camera_edge(self, ray, ds, medium, v, active):
+        """The shadow ray ``ray`` to the camera point ``ds`` through media from a point in
+        ``medium``: media_path.EdgeTerms; the near end is the light vertex ``v`` (a
+        media_path.PathVertex), or None: a surface (the emitter point)."""
+        c = self.ctx
+        n = dr.width(ds.p)
+        near = v.density_factor(c.media.info) if v is not None else media_path.surface_start(n)
+        media = (medium, medium_at_sensor(c.sensor, n))
+        return media_path.edge_terms(c, self.sampler, ray, (ds.p, mi.Normal3f(0.0), mi.Float(0.0)), media,
+                                     (near, media_path.surface_start(n)), active)
 
     # ------------------------------------------------------------------ walk
     mode = IMPORTANCE
@@ -129,7 +160,9 @@ class LightTracer:
         return sub.active & (carry[0] < self.cap_eff)
 
     def vertex(self, si, ray):
-        return Vertex.at(self.ctx, si)
+        if self.ctx.media is None:
+            return Vertex.at(self.ctx, si)
+        return media_path.PathVertex.at(self.ctx, si)
 
     def at_vertex(self, v, ray, sub, carry):
         """At light vertex y_depth: store it (s >= 2, t >= 2) and splat it (t=1)."""

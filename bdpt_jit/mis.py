@@ -21,7 +21,16 @@ power (beta=2), balance (beta=1) and uniform (beta=0, with h(0)=0) weightings: h
 multiplicative, h(ab) = h(a) h(b), for all three.
 
 Densities carry their measure in their names: ``pdf_w`` per unit solid angle, ``pdf_a`` per
-unit area.
+unit area (per unit volume at a medium vertex), ``pdf_l`` the distance density of an edge
+through media.
+
+Participating media (media.py, media_path.py): a vertex sampled across an edge through media
+has the edge's distance density ``pdf_l`` in its density (sigma_t T per unit length at a
+medium vertex, T at a surface), and no cosine at a medium vertex (cos = 1). The walk's edges
+enter the running quantities through ``distance``; the strategies pass every density of a
+vertex sampled across their own edge with its ``pdf_l`` already in it (pdf_a = pdf_w |cos| /
+d^2 * pdf_l, eq. 9 with distance sampling), so the weights below read the same with and
+without media. Merging is not offered with media (context.py).
 
 Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
@@ -285,6 +294,20 @@ class MIS:
         if self.pending and not camera_side:
             pend_vc, pend_vm = self.vm_on_hit(pend_vc, cos_hit), self.vm_on_hit(pend_vm, cos_hit)
         return MISState(d_vcm, d_vc, d_vm, pend_vc, pend_vm)
+
+    def distance(self, st, pdf_fwd_l, pdf_rev_l):
+        """The edge just traced was distance-sampled through media (media_path.step):
+        ``pdf_fwd_l``, its distance density at the vertex it reached (sigma_t T per unit length
+        at a medium vertex, T at a surface; media.py), joins that vertex's forward density;
+        ``pdf_rev_l``, the same edge's density sampled from that vertex back to the one it left,
+        joins the reverse density of the vertex it left (the cosine there is already in d_vc,
+        from on_scatter). Applied before ``hit``, whose factors it multiplies."""
+        inv_fwd = self.h(dr.select(pdf_fwd_l > 0, 1.0 / pdf_fwd_l, 0.0))
+        ratio = self.h(pdf_rev_l) * inv_fwd
+        d_vcm = st.d_vcm * inv_fwd                          # [eq. 9, 22] vc_i: p->_i with its distance density
+        d_vc = st.d_vc * ratio                              # [eq. 21, 22] p<-_{i-1} / p->_i with theirs
+        d_vm = st.d_vm * ratio if self.mis_merges else st.d_vm      # [VCM (36)] as d_vc
+        return MISState(d_vcm, d_vc, d_vm, st.pend_vc, st.pend_vm)
 
     def scatter(self, st, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here=True):
         """The vertex scattered towards a direction of density ``pdf_fwd_w`` (arguments as

@@ -117,17 +117,11 @@ def _plugin_name(obj) -> str:
     return PLUGIN_NAMES.get(name, name)
 
 
-def _medium_name(medium) -> str:
+def describe_medium(medium) -> str:
     """A medium as a message names it: its id (if any) and its plugin."""
     plugin = _plugin_name(medium)
     ident = str(medium.id()) if hasattr(medium, 'id') else ''
     return f"'{ident}' ({plugin})" if ident else f"'{plugin}'"
-
-
-def _refuse_medium(where, medium):
-    raise UnsupportedSceneError(
-        f"bdpt: participating media are not supported: {where} has the medium {_medium_name(medium)}",
-        alternative='volpath')
 
 
 def check_scene(scene: mi.Scene, sensor: mi.Sensor):
@@ -137,8 +131,6 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
         why = f": {REFUSED_REASONS[s_name]}" if s_name in REFUSED_REASONS else " yet"
         raise UnsupportedSceneError(
             f"bdpt: sensor plugin '{s_name}' is not supported{why} (supported: {', '.join(SUPPORTED_SENSORS)})")
-    if sensor.get_medium() is not None:
-        _refuse_medium('the sensor', sensor.get_medium())
     for em in scene.emitters():
         e_name = _plugin_name(em)
         if e_name not in SUPPORTED_EMITTERS:
@@ -172,14 +164,6 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
                         "light subpath starts at Mitsuba's position sample (position, normal, uv), which "
                         "carries no triangle to read a mesh attribute at (bitmap and checkerboard "
                         "radiance are supported)")
-        if em.get_medium() is not None:
-            _refuse_medium(f"the emitter '{e_name}'", em.get_medium())
-    for shape in scene.shapes():
-        for side, medium in (('interior', shape.interior_medium()), ('exterior', shape.exterior_medium())):
-            if medium is not None:
-                shape_id = str(shape.id())
-                named = f"the shape '{shape_id}'" if shape_id else f"a shape '{_plugin_name(shape)}'"
-                _refuse_medium(f"{named} ({side})", medium)
 
 
 def has_instances(scene: mi.Scene) -> bool:

@@ -33,11 +33,13 @@ FIELDS = {
     'd_vc': mi.Float,
     'd_vm': mi.Float,         # merging MIS quantity     (technique vcm only)
     'depth': mi.UInt32,       # j: edges from y0         (absent: level + 1, every vertex stored)
+    'medium': mi.MediumPtr,   # the medium the subpath reached it in   (scenes with media only)
+    'in_medium': mi.UInt32,   # 1: a medium vertex (p, wi and medium; its coefficients evaluated again)
 }
 
 
 _COMPONENTS = {mi.Point3f: 3, mi.Normal3f: 3, mi.Vector3f: 3, mi.Point2f: 2,
-               mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1,
+               mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1, mi.MediumPtr: 1,
                mi.Spectrum: dr.size_v(mi.Spectrum)}    # RGB 3, monochrome 1, spectral 4
 
 
@@ -59,13 +61,20 @@ class VertexRecord:
                'shape': si.shape, 'bsdf': v.bsdf, 'prim_index': si.prim_index, 'dp_du': si.dp_du,
                'dp_dv': si.dp_dv, 'beta': sub.beta, 'd_vcm': m.d_vcm, 'd_vc': m.d_vc, 'd_vm': d_vm,
                'depth': sub.depth}
+        if 'in_medium' in cls.DRJIT_STRUCT:      # (media_path.PathVertex)
+            src['medium'], src['in_medium'] = v.medium, dr.select(v.in_medium, mi.UInt32(1), mi.UInt32(0))
         for k in cls.DRJIT_STRUCT:           # unused fields are never evaluated (lazy JIT)
             setattr(r, k, src[k])
         return r
 
     def vertex(self, time, wavelengths=None):
-        """The stored vertex as a vertex.Vertex (``interaction``'s arguments)."""
-        return Vertex(self.interaction(time, wavelengths), self.bsdf, self.err)
+        """The stored vertex as a vertex.Vertex (``interaction``'s arguments), or a
+        media_path.PathVertex in a scene with media."""
+        v = Vertex(self.interaction(time, wavelengths), self.bsdf, self.err)
+        if 'in_medium' not in self.DRJIT_STRUCT:
+            return v
+        from .media_path import stored_vertex
+        return stored_vertex(v, self.medium, self.in_medium)
 
     # ---------------------------------------------------------------- packed storage
     # A record is stored as consecutive float words, padded to whole packets of 4: one vertex
@@ -85,7 +94,7 @@ class VertexRecord:
         out = []
         for k, t in self.DRJIT_STRUCT.items():
             x = getattr(self, k)
-            if t in (mi.ShapePtr, mi.BSDFPtr):
+            if t in (mi.ShapePtr, mi.BSDFPtr, mi.MediumPtr):
                 out.append(dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x)))
             elif t is mi.UInt32:
                 out.append(dr.reinterpret_array(mi.Float, x))
@@ -101,7 +110,7 @@ class VertexRecord:
         i = 0
         for k, t in cls.DRJIT_STRUCT.items():
             m = _COMPONENTS[t]
-            if t in (mi.ShapePtr, mi.BSDFPtr):
+            if t in (mi.ShapePtr, mi.BSDFPtr, mi.MediumPtr):
                 x = dr.reinterpret_array(t, dr.reinterpret_array(mi.UInt32, words[i]))
             elif t is mi.UInt32:
                 x = dr.reinterpret_array(mi.UInt32, words[i])
@@ -174,9 +183,10 @@ def make_record_type(fields):
 StoredVertex = make_record_type(list(FIELDS))
 
 
-def record_type(needs, merging=False):
+def record_type(needs, merging=False, media=False):
     """The record for a scene: ``needs`` (scene_check.VertexNeeds) says which optional fields
-    its BSDFs and shapes read; ``merging``: vertex merging with MIS (technique vcm) reads d_vm."""
+    its BSDFs and shapes read; ``merging``: vertex merging with MIS (technique vcm) reads d_vm;
+    ``media``: the scene has participating media (medium vertices, each vertex's medium)."""
     fields = ['p', 'err', 'n_s', 'wi', 'bsdf', 'beta', 'd_vcm', 'd_vc']
     if merging:
         fields.append('d_vm')
@@ -190,6 +200,8 @@ def record_type(needs, merging=False):
         fields += ['dp_du', 'dp_dv']
     if needs.depth:
         fields.append('depth')
+    if media:
+        fields += ['medium', 'in_medium']
     return make_record_type(fields)
 
 

@@ -7,6 +7,7 @@ they evaluate at each vertex; the walk between vertices is this module."""
 import drjit as dr
 import mitsuba as mi
 
+from . import media_path
 from .connect import CTX_IMPORTANCE, CTX_RADIANCE, adjoint_correction, adjoint_eval, reverse_pdf_w
 from .jitmath import safe_div
 from .mis import MISState
@@ -47,8 +48,8 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
 
 
 def _sample(ctx, mode, sampler, v, active):
-    """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (bs, the throughput
-    factor, the outgoing direction in world space, the reverse density, active, the delta mask
+    """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (the direction's
+    density per unit solid angle, the throughput factor, the outgoing direction in world space, the reverse density, active, the delta mask
     or None, the samples)."""
     si = v.si
     u1, u2 = sampler.next_1d(), sampler.next_2d()
@@ -65,7 +66,7 @@ def _sample(ctx, mode, sampler, v, active):
     exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta)
     if exact is not None:
         factor = dr.select(exact[0], exact[1], factor)
-    return bs, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2)
+    return bs.pdf, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2)
 
 
 def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
@@ -73,12 +74,16 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     mis.MIS; ``merge_here``: camera side, whether a merge at ``v`` is a strategy). Updates the
     throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
     the delta mask or None without delta lobes, the lobe and direction samples)."""
-    bs, factor, wo_world, pdf_rev_w, active, is_delta, u = _sample(ctx, mode, sampler, v, sub.active)
+    if ctx.media is None:
+        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u = _sample(ctx, mode, sampler, v, sub.active)
+    else:       # a surface or a medium vertex (media_path.PathVertex)
+        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u = media_path.sample_direction(
+            ctx, mode, sampler, v, sub.active, _sample)
     beta = sub.beta * factor
     camera_side = mode == RADIANCE
     if ctx.ad and not camera_side:   # the factor without derivatives: the edge's derivative comes with edge_ratio
         beta = mi.Spectrum(sub.beta * dr.detach(beta * safe_div(1.0, dr.detach(sub.beta))))
-    st = mis.scatter(sub.mis, v.cos(wo_world), bs.pdf, pdf_rev_w, is_delta, camera_side, merge_here)
+    st = mis.scatter(sub.mis, v.cos(wo_world), pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here)
     if camera_side and ctx.strategies.ppm:     # vm: only delta lobes go on (a smooth one was merged)
         active = active & (is_delta if is_delta is not None else False)
     if not camera_side and mis.camera_chains and is_delta is not None:
@@ -95,8 +100,11 @@ def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
     Subpath, the squared edge length between the two vertices, whether ``v`` scattered through
     a delta lobe). The hit is not yet accounted for: ``arrive`` does that."""
     ray, sub, is_delta, u = scatter(ctx, mis, mode, sampler, v, sub, merge_here)
-    si_next, beta, dist2 = ctx.sampling.next_vertex(mode == RADIANCE, v, ray, u, is_delta, sub.beta, sub.active)
-    sub.beta = beta
+    if ctx.media is None:
+        si_next, beta, dist2 = ctx.sampling.next_vertex(mode == RADIANCE, v, ray, u, is_delta, sub.beta, sub.active)
+        sub.beta = beta
+    else:       # distance sampling: a medium vertex or a surface (media_path.MediumHit)
+        si_next, sub, dist2 = media_path.next_vertex(ctx, mis, sampler, v, ray, sub)
     if ctx.stats is not None:
         ctx.stats.ray('camera' if mode == RADIANCE else 'light', sub.active, si_next.is_valid())
     was_delta = is_delta if is_delta is not None else mi.Bool(False)
@@ -104,10 +112,12 @@ def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
 
 
 def arrive(mis, mode, sub, si, ray, dist2):
-    """The walk reaches the hit ``si`` of ``ray`` (``dist2``: the edge's squared length): lanes
+    """The walk reaches the hit ``si`` of ``ray`` (a SurfaceInteraction3f, or a
+    media_path.MediumHit in a scene with media; ``dist2``: the edge's squared length): lanes
     that left the scene end, the MIS quantities take the edge's change of measure, depth + 1."""
     active = sub.active & si.is_valid()
-    st = mis.hit(sub.mis, dist2, dr.abs(dr.dot(si.n, ray.d)), mode == RADIANCE)
+    cos_hit = si.cos(ray.d) if isinstance(si, media_path.MediumHit) else dr.abs(dr.dot(si.n, ray.d))
+    st = mis.hit(sub.mis, dist2, cos_hit, mode == RADIANCE)
     return Subpath(sub.beta, sub.beta_start, st, sub.depth + 1, active)
 
 

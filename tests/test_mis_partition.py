@@ -41,7 +41,7 @@ M = 512   # random paths per length
 KINDS = ('area', 'delta_pos', 'delta_dir', 'env', 'dir_area')
 
 
-def random_paths(rng, k, delta_prob, emitter='area'):
+def random_paths(rng, k, delta_prob, emitter='area', media=False):
     # vertex attributes, index 0..k
     d2 = 10.0 ** rng.uniform(-3, 2, size=(M, k))         # edge i: (x_i, x_{i+1})
     cosA = rng.uniform(0.01, 1.0, size=(M, k))            # at x_i towards x_{i+1}
@@ -57,6 +57,18 @@ def random_paths(rng, k, delta_prob, emitter='area'):
     delta[:, k] = False
     pL = np.where(delta, 1.0, pL)                          # discrete lobe: same both ways
     pE = np.where(delta, 1.0, pE)
+    # participating media (media.py): medium vertices (cosine 1 on both sides, never delta) and
+    # every edge's distance densities towards x_{i+1} (lf) and towards x_i (lb): sigma_t T per
+    # unit length at a medium vertex, T at a surface, here random over four decades
+    lf, lb = np.ones((M, k)), np.ones((M, k))
+    if media:
+        med = rng.uniform(size=(M, k + 1)) < 0.4
+        med[:, 0] = med[:, k] = False
+        delta &= ~med
+        pL, pE = np.where(med, diffuse, pL), np.where(med, diffuse * rng.uniform(0.3, 3, size=(M, k + 1)), pE)
+        cosA = np.where(med[:, :k], 1.0, cosA)
+        cosB = np.where(med[:, 1:], 1.0, cosB)
+        lf, lb = 10.0 ** rng.uniform(-3, 1, size=(M, k)), 10.0 ** rng.uniform(-3, 1, size=(M, k))
     pA_light0 = 10.0 ** rng.uniform(-2, 2, size=M)
     p_direct_a = 10.0 ** rng.uniform(-2, 2, size=M)
     if emitter in ('delta_pos', 'delta_dir'):
@@ -69,7 +81,7 @@ def random_paths(rng, k, delta_prob, emitter='area'):
         p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
         eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
-        emitter=emitter,
+        emitter=emitter, media=media, lf=lf, lb=lb,
     )
 
 
@@ -164,7 +176,10 @@ def brute_force(kind, technique, P, p_lens=None, chains=False, counts=None):
                     p = p * P['pdir_e'] * cosB[:, 0] / d2[:, 0]
             else:
                 p = p * pL[:, i - 1] * cosB[:, i - 1] / d2[:, i - 1]
+            if i >= 1:
+                p = p * P['lf'][:, i - 1]                   # x_i sampled along edge i-1 (media)
         for i in range(s, k):                               # camera-side vertices (x_k: pinhole, 1)
+            p = p * P['lb'][:, i]                           # x_i sampled along edge i (media)
             if i == k - 1:
                 p = p * P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]
             elif i == 0 and infinite:                       # the camera samples a direction
@@ -226,21 +241,31 @@ def recursive(kind, technique, P, chains=False, counts=None):
 
     # The subpaths' MIS quantities through the kernels' own event functions (mis.MIS.light_start,
     # camera_start, scatter, hit): each of eqs. 20-22 is then checked where the kernels apply it.
+    media = P.get('media', False)
+    lf, lb = P['lf'], P['lb']
+
+    def distance(st, fwd, rev):              # an edge distance-sampled through media (MIS.distance)
+        return mis.distance(st, F(fwd), F(rev)) if media else st
+
     def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
         p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
         st = mis.light_start(pdf_emit_w, F(cos_e0), B(np.full(M, delta)), F(p_direct), F(d2_0), F(cosB[:, 0]))
+        st = distance(st, lf[:, 0], lb[:, 0])
         for i in range(1, last):
             st = mis.scatter(st, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]), camera_side=False)
+            st = distance(st, lf[:, i], lb[:, i])
             st = mis.hit(st, F(d2[:, i]), F(cosB[:, i]), camera_side=False)
         return st.d_vcm, st.d_vc, st.d_vm
 
     def camera_state(last):                                  # at x_last (last <= k-1): (d_vcm, d_vc, d_vm)
         st = mis.camera_start(F(P['p_cam_w']), F(d2[:, k - 1]), F(cosA[:, k - 1]))
+        st = distance(st, lb[:, k - 1], lf[:, k - 1])
         for i in range(k - 1, last, -1):
             here = mis.merge_here_camera(B(delta_v[:, i + 1]))   # the camera (x_k) is not delta
             st = mis.scatter(st, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]),
                              camera_side=True, merge_here=here)
+            st = distance(st, lb[:, i - 1], lf[:, i - 1])
             if not (i - 1 == 0 and infinite):                # an environment is not hit: no conversion
                 st = mis.hit(st, F(d2[:, i - 1]), F(cosA[:, i - 1]), camera_side=True)
         return st.d_vcm, st.d_vc, st.d_vm
@@ -260,7 +285,7 @@ def recursive(kind, technique, P, chains=False, counts=None):
         elif s == 1 and ek == 'dir_area':
             w = F(np.zeros(M))                               # the kernels never form it
         elif s == 1 and t == 1:
-            w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0]), F(P['pA_light0']))
+            w = mis.weight_s1t1(F(P['p_cam_w'] * cosA[:, 0] / d2[:, 0] * lb[:, 0]), F(P['pA_light0']))
         elif s == 1:
             c_vcm, c_vc, _ = camera_state(1)
             if ek == 'area':
@@ -269,18 +294,21 @@ def recursive(kind, technique, P, chains=False, counts=None):
                 pdf_direct_w, cos_e = P['p_direct_a'] * d2[:, 0], np.ones(M)
             else:
                 pdf_direct_w, cos_e = P['p_direct_a'], np.ones(M)
-            w = mis.weight_s1(MISState(c_vcm, c_vc), F(pE[:, 1]), F(pL[:, 1]), F(cosB[:, 0]),
-                              EmitterDensities(F(pdf_direct_w), pdf_emit_w, F(cos_e), B(np.full(M, delta))),
+            # (media: the s=0 strategy reaches x_0 along edge 0 with lb, the light subpath x_1 with lf)
+            w = mis.weight_s1(MISState(c_vcm, c_vc), F(pE[:, 1] * lb[:, 0]), F(pL[:, 1]), F(cosB[:, 0]),
+                              EmitterDensities(F(pdf_direct_w), pdf_emit_w * F(lf[:, 0]), F(cos_e),
+                                               B(np.full(M, delta))),
                               merge_z=mis.merge_here_camera(B(delta_v[:, 2])))
         elif t == 1:
             l_vcm, l_vc, _ = light_state(k - 1)
-            w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1]), F(pE[:, k - 1]))
+            w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1] * lb[:, k - 1]),
+                              F(pE[:, k - 1]))
         else:
             l_vcm, l_vc, _ = light_state(s - 1)
             c_vcm, c_vc, _ = camera_state(s)
             w = mis.weight_connect(MISState(l_vcm, l_vc), MISState(c_vcm, c_vc),
-                                   F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1]),
-                                   F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1]),
+                                   F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1] * lb[:, s - 1]),
+                                   F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1] * lf[:, s - 1]),
                                    F(pE[:, s - 1]), F(pL[:, s]), merge_z=mis.merge_here_camera(B(delta_v[:, s + 1])))
         w = np.array(w if isinstance(w, mi.Float) else mi.Float(w), dtype=np.float64)
         w = np.broadcast_to(w, (M,)) if w.size == 1 else w
@@ -357,4 +385,27 @@ def test_camera_chains_partition_of_unity(k, emitter, kind):
     assert np.all(np.isfinite(w_rec)) and np.all((w_rec >= 0) & (w_rec <= 1 + 1e-6))
     left = np.array([allowed('bdpt', k, s, P) & chain_free(k, s, P) for s in range(k + 1)]).any(axis=0)
     np.testing.assert_allclose(w_rec.sum(axis=0)[left], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize('camera', ['pinhole', 'delta'])
+@pytest.mark.parametrize('emitter', KINDS)
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
+@pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
+@pytest.mark.parametrize('k', [1, 2, 3, 5, 8])
+def test_weights_partition_of_unity_with_media(k, kind, technique, emitter, camera):
+    """Paths with medium vertices (cosine 1, phase-function densities) and every edge
+    distance-sampled (random forward and reverse distance densities, mis.MIS.distance and the
+    strategies' pdf_l): the recursive weights equal the brute force's and sum to 1 (issue 23,
+    test 3). Merging is not offered with media (context.Context.media_setup)."""
+    rng = np.random.default_rng(7000 + 1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
+    P = random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=True)
+    P['camera'] = camera
+    if camera == 'delta' and technique == 'lt':
+        return
+    w_rec = recursive(kind, technique, P)
+    w_ref = brute_force(kind, technique, P)
+    assert np.all(np.isfinite(w_rec))
+    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]).any(axis=0)
+    np.testing.assert_allclose(w_rec.sum(axis=0)[any_strategy], 1.0, rtol=1e-5)
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)

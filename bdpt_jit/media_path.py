@@ -1,0 +1,293 @@
+"""Subpaths through participating media: the vertex a walk reaches by distance sampling (a
+surface or a real collision in a medium), the step that samples it, and the transmittance
+and distance densities of the edges every strategy builds. Used only where the scene has a
+medium (``ctx.media``, a Python value): the kernels of other scenes are traced without any
+of it (tests/test_media_render.py compares their kernel hashes).
+
+A vertex of such a scene is a ``PathVertex``: per lane a surface vertex (vertex.Vertex) or a
+medium vertex (media.MediumVertex), with the medium the walk reached it in. Its surface part
+holds, in medium lanes, a point with a zero normal and no shape: every ray it spawns then
+leaves without an offset, it has no emitter and no BSDF, and its cosine is 1 (``cos``). The
+densities and measures are media.py's; where they enter the MIS: mis.MIS.distance (the
+walk's edges) and the strategies (camera_path.py, light_path.py), each density of a vertex
+sampled across an edge times that edge's distance density ``pdf_l``."""
+
+import drjit as dr
+import mitsuba as mi
+
+from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor
+from .vertex import Vertex
+
+
+def _point_si(mei):
+    """A SurfaceInteraction3f at the collision ``mei`` for the surface part of a medium lane:
+    its point, no normal, no shape, the frame along wi (world wi = to_world((0, 0, 1)))."""
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(mei.p))
+    si.p, si.t, si.time = mei.p, mei.t, mei.time
+    if mi.is_spectral:
+        si.wavelengths = mei.wavelengths
+    si.sh_frame = mi.Frame3f(mei.wi)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    return si
+
+
+class MediumHit:
+    """Where a distance-sampled step ends, one field a line."""
+    DRJIT_STRUCT = {
+        'si': mi.SurfaceInteraction3f,   # the surface reached (where not collided; invalid: the ray escaped)
+        'mei': mi.MediumInteraction3f,   # the real collision (where collided)
+        'collided': mi.Bool,             # a medium vertex
+        'medium': mi.MediumPtr,          # the medium the step ended in (the collision's, or the surface's incoming side)
+    }
+
+    def __init__(self, si=None, mei=None, collided=None, medium=None):
+        self.si, self.mei, self.collided, self.medium = si, mei, collided, medium
+
+    def is_valid(self):
+        """A vertex was reached: a collision or a surface (not: the ray left the scene)."""
+        return self.collided | self.si.is_valid()
+
+    @property
+    def p(self):
+        return dr.select(self.collided, self.mei.p, self.si.p)
+
+    def cos(self, d):
+        """|cos| at the vertex reached along ``d``: 1 at a collision."""
+        return dr.select(self.collided, 1.0, dr.abs(dr.dot(self.si.n, d)))
+
+    def interaction(self):
+        """The surface interaction a vertex of this hit holds (``_point_si`` in medium lanes)."""
+        return dr.select(self.collided, _point_si(self.mei), self.si)
+
+
+class PathVertex:
+    """A vertex of a subpath in a scene with media, one field a line (module docstring)."""
+    DRJIT_STRUCT = {
+        'surf': Vertex,                  # the surface vertex (medium lanes: a point, no normal, no BSDF)
+        'mei': mi.MediumInteraction3f,   # the collision (medium lanes): medium, sigma_s/n/t, wi (world)
+        'in_medium': mi.Bool,            # a medium vertex
+        'medium': mi.MediumPtr,          # the medium the walk reached the vertex in
+    }
+
+    def __init__(self, surf=None, mei=None, in_medium=None, medium=None):
+        self.surf, self.mei, self.in_medium, self.medium = surf, mei, in_medium, medium
+
+    @classmethod
+    def at(cls, ctx, hit, ray=None):
+        """The vertex at the MediumHit ``hit`` (``ray``: the ray that found it, for the BSDF lookup)."""
+        si = hit.interaction()
+        return cls(Vertex.at(ctx, si, ray), hit.mei, mi.Bool(hit.collided), hit.medium)
+
+    # the operations of vertex.Vertex
+    si = property(lambda self: self.surf.si)
+    bsdf = property(lambda self: self.surf.bsdf)
+    err = property(lambda self: self.surf.err)
+    p = property(lambda self: self.surf.si.p)
+
+    def _phase(self):
+        return MediumVertex(self.mei)
+
+    def cos(self, w):
+        """|cos| towards ``w``: the surface's, 1 at a medium vertex."""
+        return dr.select(self.in_medium, 1.0, self.surf.cos(w))
+
+    def smooth(self, table=None):
+        """Lanes with a smooth component: every medium vertex, the surface's otherwise."""
+        return self.in_medium | self.surf.smooth(table)
+
+    def eval(self, ctx, wo_world, mode, active):
+        """As vertex.Vertex.eval: the BSDF's value and densities, or the phase function's."""
+        m = self.in_medium
+        f_s, fwd_s, rev_s, ok_s = self.surf.eval(ctx, wo_world, mode, active & ~m)
+        f_m, fwd_m, rev_m, ok_m = self._phase().eval(ctx, wo_world, mode, active & m)
+        return (dr.select(m, f_m, f_s), dr.select(m, fwd_m, fwd_s), dr.select(m, rev_m, rev_s),
+                dr.select(m, ok_m, ok_s))
+
+    def spawn(self, d):
+        return self.surf.spawn(d)             # (medium lanes: no normal, so no offset)
+
+    def spawn_to(self, ctx, q, n_q, err_q):
+        return self.surf.spawn_to(ctx, q, n_q, err_q)
+
+    def spawn_to_emitter(self, ctx, ds):
+        return self.surf.spawn_to_emitter(ctx, ds)
+
+    # what media add
+    def medium_towards(self, d):
+        """The medium a ray leaving the vertex in direction ``d`` travels in."""
+        return dr.select(self.in_medium, self.medium, medium_after(self.surf.si, d, self.medium))
+
+    def density_factor(self, info):
+        """The vertex's media.DensityFactor: sigma_t at a medium vertex, (1, 1) at a surface."""
+        return DensityFactor.at(info, self.mei.medium, self.mei.sigma_t, self.in_medium)
+
+    def end(self):
+        """The (point, normal, error) a shadow ray towards this vertex ends at (rays.spawn_to)."""
+        return self.surf.si.p, self.surf.si.n, self.surf.err
+
+
+def sample_direction(ctx, mode, sampler, v, active, surface_sample):
+    """The next direction at the PathVertex ``v``: ``surface_sample`` (transport's BSDF
+    sampling, same arguments and results) in surface lanes, the phase function in medium lanes
+    with the same two samples. Returns (pdf_fwd_w, factor, wo_world, pdf_rev_w, active,
+    is_delta or None, the samples)."""
+    m = v.in_medium
+    pdf_fwd, factor, wo, pdf_rev, ok, is_delta, u = surface_sample(ctx, mode, sampler, v.surf, active & ~m)
+    ph = v._phase().sample(mode, u[0], u[1], active & m)
+    if is_delta is not None:
+        is_delta = is_delta & ~m
+    return (dr.select(m, ph.pdf_w, pdf_fwd), dr.select(m, ph.weight, factor), dr.select(m, ph.wo, wo),
+            dr.select(m, ph.pdf_rev_w, pdf_rev), dr.select(m, ph.active, ok), is_delta, u)
+
+
+def sample_step(ctx, sampler, ray, medium, start, beta, active):
+    """Distance sampling along ``ray`` from a point in ``medium`` whose DensityFactor is
+    ``start`` (media.MediumTracer.sample_distance): (the vertex reached, a MediumHit; the
+    throughput ``beta`` times the step's weight; the step's forward and reverse distance
+    densities, mis.MIS.distance's arguments)."""
+    ds = ctx.media.sample_distance(ray, None, medium, sampler, start, active)
+    hit = MediumHit(ds.si, ds.mei, ds.collided & active, ds.medium)
+    return hit, dr.select(active, beta * ds.weight, beta), ds.pdf_fwd, ds.pdf_rev
+
+
+def next_vertex(ctx, mis, sampler, v, ray, sub):
+    """The walk's next vertex from the PathVertex ``v`` along ``ray``: (the MediumHit, the
+    Subpath with the step's weight and distance densities, the squared edge length between
+    the two vertices)."""
+    hit, sub.beta, pdf_fwd_l, pdf_rev_l = sample_step(ctx, sampler, ray, v.medium_towards(ray.d),
+                                                      v.density_factor(ctx.media.info), sub.beta, sub.active)
+    sub.mis = mis.distance(sub.mis, pdf_fwd_l, pdf_rev_l)
+    return hit, sub, dr.squared_norm(hit.p - v.p)
+
+
+def surface_start(width):
+    """The DensityFactor of a subpath's start (a lens point or an emitter point: no medium vertex)."""
+    return DensityFactor.surface(width)
+
+
+def sensor_medium(ctx, width):
+    """The medium around the camera, per lane."""
+    return medium_at_sensor(ctx.sensor, width)
+
+
+class EdgeTerms:
+    """What a strategy takes from the edge between its two vertices, one field a line."""
+
+    def __init__(self, tr, pdf_l_far, pdf_l_near):
+        self.tr = tr                    # transmittance (Spectrum; 0 where the edge is not made)
+        self.pdf_l_far = pdf_l_far      # the edge's distance density at its far end (sampled from the near one)
+        self.pdf_l_near = pdf_l_near    # ... at its near end (sampled from the far one)
+
+
+def edge_terms(ctx, sampler, ray, ends, media, factors, active):
+    """The shadow or connection ray ``ray`` from the near end to the far one through media:
+    ``ends`` (near point for nothing, far (q, n_q, err_q)) as media.MediumTracer.edge takes its
+    ``end``; ``media`` = (the near end's medium towards the far one, the far end's medium
+    towards the near one, None: not checked); ``factors`` = the DensityFactors of (near, far).
+    Counts the shadow ray in the statistics. Returns EdgeTerms."""
+    et = ctx.media.edge(ray, ends, media[0], sampler, active, media[1])
+    if ctx.stats is not None:
+        ctx.stats.shadow(active, ~et.ok)
+    return EdgeTerms(et.tr, et.pdf_l(factors[1]), et.pdf_l(factors[0]))
+
+
+def connection_edge(ctx, sampler, ray, z, y, d, active):
+    """edge_terms of the connection ray ``ray`` from the PathVertex ``z`` to the PathVertex
+    ``y`` in the unit direction ``d``: each end's medium towards the other, their densities."""
+    info = ctx.media.info
+    return edge_terms(ctx, sampler, ray, y.end(), (z.medium_towards(d), y.medium_towards(-d)),
+                      (z.density_factor(info), y.density_factor(info)), active)
+
+
+class EmitterMedia:
+    """The medium each emitter lies in, as the scene's geometry says: the emitter's own
+    ``get_medium()`` where it has one; else, for an emitter with a position (area, point,
+    spot), the medium of the nearest enclosing medium boundary (a shape that is a medium
+    transition), found by a ray from a point of the emitter; infinite emitters lie outside
+    every medium. Area emitters on a medium boundary emit into the side they face
+    (``medium``). Mitsuba's point lights report no medium unless given one, yet lie inside the
+    fog of a room; a light subpath started in vacuum there would disagree with every camera
+    subpath about the medium, so every connection to it would be refused."""
+
+    def __init__(self, scene):
+        ids = {}
+        for em in scene.emitters():
+            key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
+            ids[key] = _medium_id(self.emitter_medium(scene, em))
+        size = max(list(ids) + [0]) + 1
+        table = [0] * size
+        for k, v in ids.items():
+            table[k] = v
+        self.table = mi.UInt32(table)
+
+    @staticmethod
+    def emitter_medium(scene, em):
+        """The medium (or None) the emitter ``em`` lies in (class docstring)."""
+        if em.get_medium() is not None:
+            return em.get_medium()
+        if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
+            return None
+        ps, _ = em.sample_position(0.0, mi.Point2f(0.5, 0.5))
+        n = mi.Vector3f(ps.n) if dr.squared_norm(ps.n)[0] > 0 else mi.Vector3f(0.0, 0.0, 1.0)
+        return enclosing_medium(scene, mi.Point3f(ps.p), n)
+
+    def medium(self, emitter, n, d, active=True):
+        """The medium a ray from a point of ``emitter`` (normal ``n``) in direction ``d`` starts in."""
+        own = dr.reinterpret_array(mi.MediumPtr, dr.gather(mi.UInt32, self.table,
+                                                            dr.reinterpret_array(mi.UInt32, emitter)))
+        shape = emitter.get_shape()
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(n))
+        si.shape, si.n, si.t = shape, n, 1.0
+        on_boundary = active & (dr.reinterpret_array(mi.UInt32, shape) != 0) & si.is_medium_transition()
+        return dr.select(on_boundary, si.target_medium(d), own)
+
+
+def _medium_id(medium):
+    return 0 if medium is None else int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(medium))[0])
+
+
+def enclosing_medium(scene, p, d, max_hits=256):
+    """The medium around the point ``p`` (one lane): along the ray from ``p`` in direction
+    ``d``, the first shape that is a medium transition tells by the side the ray meets it on
+    (shapes that are not, opaque or not, lie inside one medium and are passed). None: vacuum."""
+    ray = mi.Ray3f(p, dr.normalize(d))
+    for _ in range(max_hits):
+        si = scene.ray_intersect(ray)
+        if not bool(si.is_valid()[0]):
+            return None
+        if bool(si.is_medium_transition()[0]):
+            m = si.target_medium(-ray.d)      # the side the ray came from
+            ident = int(dr.reinterpret_array(mi.UInt32, m)[0])
+            return None if ident == 0 else _medium_by_id(scene, ident)
+        ray = si.spawn_ray(ray.d)
+    return None
+
+
+def _medium_by_id(scene, ident):
+    for s in scene.shapes():
+        for m in (s.interior_medium(), s.exterior_medium()):
+            if m is not None and _medium_id(m) == ident:
+                return m
+    return None
+
+
+def stored_vertex(v, medium, in_medium):
+    """A PathVertex from a stored light vertex: ``v`` its vertex.Vertex as store.VertexRecord
+    rebuilds it, ``medium`` and ``in_medium`` (UInt32 0/1) its stored medium fields; a medium
+    vertex's coefficients are evaluated again at its position."""
+    m = in_medium != 0
+    si = v.si
+    mei = dr.zeros(mi.MediumInteraction3f, dr.width(si.p))
+    mei.p, mei.t, mei.time = si.p, 1.0, si.time
+    if mi.is_spectral:
+        mei.wavelengths = si.wavelengths
+    mei.wi = si.to_world(si.wi)
+    mei.sh_frame = mi.Frame3f(mei.wi)
+    mei.medium = dr.select(m, medium, dr.zeros(mi.MediumPtr, dr.width(si.p)))
+    sigma_s, sigma_n, sigma_t = mei.medium.get_scattering_coefficients(mei, m)
+    mei.sigma_s, mei.sigma_n, mei.sigma_t = sigma_s, sigma_n, sigma_t
+    si_m = mi.SurfaceInteraction3f(si)
+    si_m.n = dr.select(m, mi.Normal3f(0.0), si.n)
+    si_m.shape = dr.select(m, dr.zeros(mi.ShapePtr, dr.width(si.p)), si.shape)
+    bsdf = dr.select(m, dr.zeros(mi.BSDFPtr, dr.width(si.p)), v.bsdf)
+    return PathVertex(Vertex(si_m, bsdf, v.err), mei, m, medium)
