@@ -179,6 +179,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             dr.eval(ctx.layers.buf)
         if ctx.stats is not None:
             ctx.stats.end_pass()
+        if ctx.medium_stats is not None:
+            ctx.medium_stats.end_pass()
         return ps.store.capacity if ps.store is not None else 0
 
     def pass_state(self, ctx, acc, seed, i, spp_pass, pixel_start, pixel_count):
@@ -246,6 +248,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
+        if ctx.media is not None:
+            info['media'] = {'heterogeneous': ctx.media.info.heterogeneous, 'chromatic': ctx.media.info.chromatic,
+                             **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}
         if ctx.light_cache is not None:
             vpp, c = self.cache_run
             info['light_cache'] = {'light_paths_per_sample': ctx.light_cache.ratio, 'connections': c,

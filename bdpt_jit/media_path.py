@@ -16,6 +16,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor
+from .rays import spawn
 from .vertex import Vertex
 
 
@@ -209,11 +210,11 @@ class EmitterMedia:
     fog of a room; a light subpath started in vacuum there would disagree with every camera
     subpath about the medium, so every connection to it would be refused."""
 
-    def __init__(self, scene):
+    def __init__(self, scene, offsets):
         ids = {}
         for em in scene.emitters():
             key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
-            ids[key] = _medium_id(self.emitter_medium(scene, em))
+            ids[key] = _medium_id(self.emitter_medium(scene, offsets, em))
         size = max(list(ids) + [0]) + 1
         table = [0] * size
         for k, v in ids.items():
@@ -221,15 +222,16 @@ class EmitterMedia:
         self.table = mi.UInt32(table)
 
     @staticmethod
-    def emitter_medium(scene, em):
-        """The medium (or None) the emitter ``em`` lies in (class docstring)."""
+    def emitter_medium(scene, offsets, em):
+        """The medium (or None) the emitter ``em`` lies in (class docstring; ``offsets``: the
+        scene's rays.RayOffsets, which the search's rays leave surfaces by)."""
         if em.get_medium() is not None:
             return em.get_medium()
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
             return None
         ps, _ = em.sample_position(0.0, mi.Point2f(0.5, 0.5))
         n = mi.Vector3f(ps.n) if dr.squared_norm(ps.n)[0] > 0 else mi.Vector3f(0.0, 0.0, 1.0)
-        return enclosing_medium(scene, mi.Point3f(ps.p), n)
+        return enclosing_medium(scene, offsets, mi.Point3f(ps.p), n)
 
     def medium(self, emitter, n, d, active=True):
         """The medium a ray from a point of ``emitter`` (normal ``n``) in direction ``d`` starts in."""
@@ -246,7 +248,7 @@ def _medium_id(medium):
     return 0 if medium is None else int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(medium))[0])
 
 
-def enclosing_medium(scene, p, d, max_hits=256):
+def enclosing_medium(scene, offsets, p, d, max_hits=256):
     """The medium around the point ``p`` (one lane): along the ray from ``p`` in direction
     ``d``, the first shape that is a medium transition tells by the side the ray meets it on
     (shapes that are not, opaque or not, lie inside one medium and are passed). None: vacuum."""
@@ -259,7 +261,7 @@ def enclosing_medium(scene, p, d, max_hits=256):
             m = si.target_medium(-ray.d)      # the side the ray came from
             ident = int(dr.reinterpret_array(mi.UInt32, m)[0])
             return None if ident == 0 else _medium_by_id(scene, ident)
-        ray = si.spawn_ray(ray.d)
+        ray = spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time)
     return None
 
 

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from bdpt_jit import media
+from bdpt_jit import media, media_path
 from bdpt_jit.rays import RayOffsets, spawn_to
 from bdpt_jit.scene_check import media_info
 from bdpt_jit.stats import MediumStats
@@ -482,7 +482,11 @@ def test_scene_without_media_traces_the_same_kernels(monkeypatch):
     for name in ('medium_after', 'medium_at_sensor', 'medium_at_emitter', 'interaction_at', 'pdf_l',
                  'majorant_transmittance', 'homogeneous_tr', 'is_null'):
         monkeypatch.setattr(media, name, refuse)
-    for cls in (media.MediumTracer, media.MediumVertex, media.DensityFactor):
+    for name in ('sample_direction', 'sample_step', 'next_vertex', 'edge_terms', 'connection_edge',
+                 'stored_vertex', 'enclosing_medium', 'surface_start', 'sensor_medium'):
+        monkeypatch.setattr(media_path, name, refuse)
+    for cls in (media.MediumTracer, media.MediumVertex, media.DensityFactor, media_path.PathVertex,
+                media_path.MediumHit, media_path.EmitterMedia):
         for name, value in list(vars(cls).items()):
             if callable(value) and not name.startswith('__'):
                 monkeypatch.setattr(cls, name, refuse)

@@ -234,17 +234,20 @@ def prepare_bdpt(args, scene, integ):
     rebuilt to run --time as its own pass loop: ``samples_per_pass`` set to one pass of
     --pass-spp (as the integrator would cut a render of --pass-spp spp: fewer samples if its
     memory budget or --samples-per-pass asks for it)."""
+    from ..params import ParameterError
     from ..passes import plan_passes
-    from ..scene_check import UnsupportedSceneError, check_scene
+    from ..scene_check import UnsupportedSceneError
     sensor = scene.sensors()[0]
     try:
-        if args.time is None:
-            check_scene(scene, sensor)
-            return integ
-        ctx = integ.make_context(scene, sensor)     # checks the scene too
+        ctx = integ.make_context(scene, sensor)     # the scene, and the parameters against it (media)
     except UnsupportedSceneError as e:
         alt = e.alternative or 'path'
         raise CLIError(f"{e} (render it with another integrator, e.g. --integrator {alt})") from None
+    except ParameterError as e:
+        raise CLIError(str(e)) from None
+    if args.time is None:
+        del ctx
+        return integ
     crop = sensor.film().crop_size()
     n_pixels = int(crop[0]) * int(crop[1])
     spp_pass, _, pixels = next(plan_passes(args.pass_spp, n_pixels, integ.bytes_per_sample(ctx),

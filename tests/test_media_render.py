@@ -1,0 +1,254 @@
+"""Renders with participating media (issue 23): bdpt, pt and lt through homogeneous,
+chromatic and heterogeneous media against analytic values and Mitsuba's volpath.
+
+- Analytic: the camera inside an absorbing null sphere (radius 1, sigma_t 1, albedo 0) under a
+  constant emitter of 1 sees exp(-1); an albedo-1 medium in a null sphere under a constant
+  emitter renders the emitter's radiance (furnace, max_depth -1), homogeneous and
+  heterogeneous, isotropic and HG g = 0.7, and homogeneous with g = +-0.99 (stiff phase
+  functions: against volpath they are untestable, its batch means spread 14% with g = -0.99 in
+  the fog room below). The camera's near clip is 1e-5 (``sensor``). Image means within 4 standard errors of the 16
+  batch means, every 4x4 block within 4.5 (a block's batch means are nearly normal at these
+  sample counts).
+- Agreement with volpath (helpers.agreement: Welch per pixel and per 4x4 block, Sidak at
+  0.01) on fog filling a closed room (camera and light inside it), a chromatic medium inside a
+  glass sphere, a heterogeneous grid with empty voxels in a null box under a point light and a
+  sky, and stiff media (sigma_t 1e-3 and 30 per unit). Pixels where neither image varies (the
+  sky seen through nothing) are compared separately to 1e-4: two renderers sum the same
+  constant in a different order.
+- lt is compared where light tracing can render every path (no emitter seen directly)."""
+
+import hashlib
+import inspect
+import sys
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from helpers import agreement, reference, render_batches
+
+RES = 16
+BATCHES = 16
+T = mi.ScalarTransform4f
+
+
+def sensor(origin, target, medium=None, fov=60):
+    # near_clip: Mitsuba's camera rays start at the near clip plane (0.01 by default), which in
+    # a medium around the camera shortens every ray (exp(-0.99) in the absorbing sphere: +1%)
+    d = {'type': 'perspective', 'fov': fov, 'to_world': T().look_at(origin, target, [0, 1, 0]), 'near_clip': 1e-5,
+         'film': {'type': 'hdrfilm', 'width': RES, 'height': RES, 'rfilter': {'type': 'box'}},
+         'sampler': {'type': 'independent'}}
+    if medium:
+        d['medium'] = {'type': 'ref', 'id': medium}
+    return d
+
+
+def null_sphere(medium_id):
+    return {'type': 'sphere', 'radius': 1.0, 'bsdf': {'type': 'null'}, 'interior': {'type': 'ref', 'id': medium_id}}
+
+
+def grid_medium(albedo, g=0.0, scale=1.0, empty=True):
+    """A heterogeneous medium on a 6^3 grid over [-1, 1]^3 (random densities in [0, 3), one
+    octant empty)."""
+    grid = np.random.default_rng(1).random((6, 6, 6, 1)).astype(np.float32) * 3
+    if empty:
+        grid[:3, :3, :3] = 0
+    return {'type': 'heterogeneous', 'albedo': albedo, 'scale': scale, 'phase': {'type': 'hg', 'g': g},
+            'sigma_t': {'type': 'gridvolume', 'grid': mi.VolumeGrid(grid),
+                        'to_world': T().translate([-1, -1, -1]).scale(2)}}
+
+
+def absorbing_sphere():
+    """Camera at the centre of a null sphere of an absorbing medium, constant emitter 1."""
+    return {'type': 'scene', 'em': {'type': 'constant', 'radiance': 1.0},
+            'ink': {'type': 'homogeneous', 'id': 'ink', 'sigma_t': 1.0, 'albedo': 0.0},
+            'sph': null_sphere('ink'), 'sensor': sensor([0, 0, 0], [0, 0, 1], 'ink')}
+
+
+def furnace(kind, g):
+    """An albedo-1 medium in a null sphere seen from outside, constant emitter 1: radiance 1."""
+    med = (grid_medium(1.0, g) if kind == 'heterogeneous' else
+           {'type': 'homogeneous', 'sigma_t': 2.0, 'albedo': 1.0, 'phase': {'type': 'hg', 'g': g}})
+    med['id'] = 'milk'
+    return {'type': 'scene', 'em': {'type': 'constant', 'radiance': 1.0}, 'milk': med,
+            'sph': null_sphere('milk'), 'sensor': sensor([0, 0, 3.5], [0, 0, 0], fov=40)}
+
+
+def fog_room(sigma_t=0.5, g=0.0, light='area', scale=1.0, offset=0.0):
+    """A closed diffuse box filled with fog (its null boundary slightly larger), camera and light
+    inside; ``scale``, ``offset``: the whole scene scaled and moved (sigma_t divided by the
+    scale: the same image)."""
+    w = T().translate([offset, offset, offset]).scale(scale)
+    d = {'type': 'scene',
+         'fog': {'type': 'homogeneous', 'id': 'fog', 'sigma_t': sigma_t, 'scale': 1.0 / scale, 'albedo': 0.8,
+                 'phase': {'type': 'hg', 'g': g}},
+         'bound': {'type': 'cube', 'to_world': w @ T().scale(1.2), 'bsdf': {'type': 'null'},
+                   'interior': {'type': 'ref', 'id': 'fog'}},
+         'walls': {'type': 'cube', 'to_world': w, 'flip_normals': True, 'bsdf': {'type': 'diffuse', 'reflectance': 0.5}},
+         'sensor': sensor(w @ mi.ScalarPoint3f(0, 0, 0.9), w @ mi.ScalarPoint3f(0, 0, 0), 'fog')}
+    if light == 'area':
+        d['light'] = {'type': 'rectangle', 'to_world': w @ T().translate([0, 0.99, 0]).rotate([1, 0, 0], 90).scale(0.2),
+                      'emitter': {'type': 'area', 'radiance': 20.0}}
+    else:
+        d['light'] = {'type': 'point', 'position': w @ mi.ScalarPoint3f(0.3, 0.5, -0.2), 'intensity': 2.0 * scale ** 2}
+    return d
+
+
+def fog_box():
+    """Fog in a null box above a diffuse floor, seen from outside, lit by a small area light
+    above it that the camera does not see: every path is a light-tracing path."""
+    return {'type': 'scene',
+            'fog': {'type': 'homogeneous', 'id': 'fog', 'sigma_t': 1.5, 'albedo': 0.7, 'phase': {'type': 'hg', 'g': 0.5}},
+            'box': {'type': 'cube', 'to_world': T().scale(0.5), 'bsdf': {'type': 'null'}, 'interior': {'type': 'ref', 'id': 'fog'}},
+            'floor': {'type': 'rectangle', 'to_world': T().translate([0, -0.7, 0]).rotate([1, 0, 0], -90).scale(2),
+                      'bsdf': {'type': 'diffuse', 'reflectance': 0.5}},
+            'light': {'type': 'rectangle', 'to_world': T().translate([0, 1.2, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                      'emitter': {'type': 'area', 'radiance': 10.0}},
+            'sensor': sensor([0, 0.2, 2.5], [0, 0, 0], fov=45)}
+
+
+def glass_juice():
+    """A glass sphere full of a chromatic scattering medium on a diffuse floor, a sphere light and a sky."""
+    return {'type': 'scene',
+            'juice': {'type': 'homogeneous', 'id': 'juice', 'scale': 2.0,
+                      'sigma_t': {'type': 'rgb', 'value': [1.0, 0.25, 0.5]},
+                      'albedo': {'type': 'rgb', 'value': [0.9, 0.5, 0.7]}},
+            'ball': {'type': 'sphere', 'radius': 0.5, 'bsdf': {'type': 'dielectric', 'int_ior': 1.33},
+                     'interior': {'type': 'ref', 'id': 'juice'}},
+            'floor': {'type': 'rectangle', 'to_world': T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(3),
+                      'bsdf': {'type': 'diffuse', 'reflectance': 0.6}},
+            'light': {'type': 'sphere', 'radius': 0.3, 'center': [1.0, 2.0, 1.0], 'emitter': {'type': 'area', 'radiance': 10.0}},
+            'env': {'type': 'constant', 'radiance': 0.2},
+            'sensor': sensor([0, 0.8, 2.5], [0, 0, 0])}
+
+
+def smoke_box():
+    """A heterogeneous grid (one octant empty) in a null box, a point light and a sky."""
+    smoke = grid_medium(0.8, scale=2.0)
+    smoke['id'] = 'smoke'
+    smoke['sigma_t']['to_world'] = T().translate([-0.5, -0.5, -0.5])
+    return {'type': 'scene', 'smoke': smoke,
+            'box': {'type': 'cube', 'to_world': T().scale(0.5), 'bsdf': {'type': 'null'},
+                    'interior': {'type': 'ref', 'id': 'smoke'}},
+            'light': {'type': 'point', 'position': [0.8, 1.0, 0.5], 'intensity': 3.0},
+            'env': {'type': 'constant', 'radiance': 0.3},
+            'sensor': sensor([0, 0.3, 2.2], [0, 0, 0])}
+
+
+SCENES = {'fog-area': fog_room, 'fog-hg': lambda: fog_room(g=0.7),
+          'glass-juice': glass_juice, 'smoke-box': smoke_box,
+          'fog-thin': lambda: fog_room(sigma_t=1e-3), 'fog-dense': lambda: fog_room(sigma_t=5.0),
+          'fog-small': lambda: fog_room(scale=1e-3), 'fog-far': lambda: fog_room(offset=1e4), 'fog-box': fog_box}
+
+
+def bdpt(technique='bdpt', max_depth=6, mis='power'):
+    return {'type': 'bdpt', 'technique': technique, 'max_depth': max_depth, 'mis': mis}
+
+
+def assert_mean_within(batches, expected, what, z=4.0, z_block=4.5):
+    """The image mean and every 4x4 block within z (z_block) standard errors of ``expected``."""
+    k = batches.shape[0]
+    img = batches.mean(axis=(1, 2, 3))
+    se = img.std(ddof=1) / np.sqrt(k)
+    assert abs(img.mean() - expected) <= z * se + 1e-6, f'{what}: {img.mean():.5f} +- {se:.5f} vs {expected:.5f}'
+    b = batches.reshape(k, RES // 4, 4, RES // 4, 4, -1).mean(axis=(2, 4, 5))
+    m, s = b.mean(0), b.std(0, ddof=1) / np.sqrt(k)
+    worst = np.max(np.abs(m - expected) / np.maximum(s, 1e-12))
+    assert worst <= z_block or np.allclose(m, expected, rtol=1e-5), f'{what}: a 4x4 block {worst:.1f} SE off'
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+def test_camera_in_absorbing_sphere_sees_exp_minus_one(technique):
+    scene = mi.load_dict(absorbing_sphere())
+    out = render_batches(scene, bdpt(technique, 5), 64, BATCHES)
+    assert_mean_within(out, np.exp(-1.0), f'{technique} in the absorbing sphere')
+
+
+def test_light_tracing_in_absorbing_sphere_renders_nothing():
+    """lt cannot connect an environment to a pinhole; the scattering is 0: the image is exactly 0."""
+    scene = mi.load_dict(absorbing_sphere())
+    assert np.all(render_batches(scene, bdpt('lt', 5), 16, 2) == 0)
+
+
+@pytest.mark.parametrize('kind,g', [('homogeneous', 0.0), ('homogeneous', 0.7), ('heterogeneous', 0.0),
+                                    ('heterogeneous', 0.7), ('homogeneous', 0.99), ('homogeneous', -0.99)])
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+def test_furnace(kind, g, technique):
+    scene = mi.load_dict(furnace(kind, g))
+    out = render_batches(scene, bdpt(technique, -1), 32, BATCHES)
+    assert_mean_within(out, 1.0, f'{technique} furnace {kind} g={g}')
+
+
+def volpath_reference(name, max_depth, spp=4096):
+    """volpath's batches of scene ``name``, cached (helpers.reference) under a key that holds the
+    source of this module's scene builders, so that a changed scene renders its reference again."""
+    src = inspect.getsource(sys.modules[__name__])
+    key = hashlib.sha1(src[:src.index('\ndef bdpt(')].encode()).hexdigest()[:12]
+    return reference(('media', name, RES, key), lambda: mi.load_dict(SCENES[name]()),
+                     {'type': 'volpath', 'max_depth': max_depth}, spp, BATCHES, 10_000)
+
+
+def check_against_volpath(name, integrator, spp=256, mask=None):
+    scene = mi.load_dict(SCENES[name]())
+    ref = volpath_reference(name, integrator['max_depth'])
+    mine = render_batches(scene, integrator, spp, BATCHES)
+    def flat(x):
+        return (x.std(axis=0) <= 1e-6 * np.abs(x.mean(axis=0)) + 1e-12).all(axis=-1)
+    constant = flat(ref) & flat(mine)
+    np.testing.assert_allclose(mine[:, constant], ref[:, constant], rtol=1e-4, atol=1e-7)
+    use = ~constant if mask is None else mask & ~constant
+    ok, msg = agreement(mine, ref, alpha=0.01, mask=use)
+    assert ok, f'{name} {integrator}: {msg}'
+
+
+# (the references at 4096 spp: at 1024, volpath's own heavy tails in fog failed a 4x4 block
+# test of bdpt at p = 1.3e-4, which passed at 1.7e-3 and 8e-3 against 4096. A point light in
+# fog gives volpath's emitter sampling infinite variance, 1/d^2 next to the light: none here.
+# The thin fog, a diffuse room with rare medium vertices, at 1024 spp: at 256 bdpt's batch means
+# are skewed (a block 5 standard errors high at one seed, within 1 at three others at 1024).)
+CASES = [('fog-area', 'bdpt', 'power'), ('fog-area', 'pt', 'power'), ('fog-area', 'bdpt', 'balance'),
+         ('fog-hg', 'bdpt', 'power'), ('fog-hg', 'bdpt', 'uniform'),
+         ('glass-juice', 'bdpt', 'power'), ('glass-juice', 'pt', 'power'),
+         ('smoke-box', 'bdpt', 'power'), ('smoke-box', 'pt', 'balance'),
+         ('fog-thin', 'bdpt', 'power'), ('fog-dense', 'bdpt', 'power')]
+
+
+@pytest.mark.parametrize('name,technique,mis', CASES)
+def test_agrees_with_volpath(name, technique, mis):
+    check_against_volpath(name, bdpt(technique, 6, mis), spp=1024 if name == 'fog-thin' else 256)
+
+
+@pytest.mark.parametrize('name', ['fog-small', 'fog-far'])
+def test_scaled_and_moved_scene_renders_the_same_image(name):
+    """The fog room scaled by 1e-3 (sigma_t by 1e3) or moved by 1e4 renders the fog room's
+    image: agreement with volpath's reference of the room itself. (Mitsuba's volpath renders
+    them +2.7% and +17%: its ray offsets are fixed fractions of the coordinates' magnitude.)"""
+    ref = volpath_reference('fog-area', 6)
+    mine = render_batches(mi.load_dict(SCENES[name]()), bdpt('bdpt', 6), 256, BATCHES)
+    ok, msg = agreement(mine, ref, alpha=0.01)
+    assert ok, f'{name}: {msg}'
+
+
+@pytest.mark.parametrize('sigma_t', [1e-4, 1e3])
+def test_stiff_extinction_finite(sigma_t):
+    """sigma_t 1e-4 and 1e3 per unit: every pixel finite (render_batches checks), in [0, the
+    light's radiance]."""
+    out = render_batches(mi.load_dict(fog_room(sigma_t=sigma_t)), bdpt('bdpt', 6), 16, 2)
+    assert out.min() >= 0 and out.max() <= 20.0
+
+
+def test_light_tracing_agrees_with_volpath():
+    """lt on fog in a box seen from outside (its light not seen directly). Not with the camera
+    inside a medium: light tracing's splats from medium vertices next to it have infinite
+    variance there (1/d^2 and no cosine), and its batch means are skewed low."""
+    check_against_volpath('fog-box', bdpt('lt', 6), spp=1024)
+
+
+def test_media_statistics_count_collisions():
+    """statistics: real collisions, null collisions of the grid and no medium inconsistency in a
+    scene whose ends all agree about their media."""
+    integ = mi.load_dict({**bdpt('bdpt', 4), 'statistics': True})
+    mi.render(mi.load_dict(smoke_box()), integrator=integ, spp=4)
+    media = integ.last_render_info['media']
+    assert media['real_collisions'] > 0 and media['null_collisions'] > 0
+    assert media['medium_inconsistencies'] == 0
