@@ -137,7 +137,7 @@ def sample_direction(ctx, mode, sampler, v, active, surface_sample):
     ph = v._phase().sample(mode, u[0], u[1], active & m)
     if is_delta is not None:
         is_delta = is_delta & ~m
-    return (dr.select(m, ph.pdf_w, pdf_fwd), dr.select(m, ph.weight, factor), dr.select(m, ph.wo, wo),
+    return (dr.select(m, ph.pdf_w, pdf_fwd), mi.Spectrum(dr.select(m, ph.weight, factor)), dr.select(m, ph.wo, wo),
             dr.select(m, ph.pdf_rev_w, pdf_rev), dr.select(m, ph.active, ok), is_delta, u)
 
 
@@ -148,7 +148,7 @@ def sample_step(ctx, sampler, ray, medium, start, beta, active):
     densities, mis.MIS.distance's arguments)."""
     ds = ctx.media.sample_distance(ray, None, medium, sampler, start, active)
     hit = MediumHit(ds.si, ds.mei, ds.collided & active, ds.medium)
-    return hit, dr.select(active, beta * ds.weight, beta), ds.pdf_fwd, ds.pdf_rev
+    return hit, mi.Spectrum(dr.select(active, beta * ds.weight, beta)), ds.pdf_fwd, ds.pdf_rev
 
 
 def next_vertex(ctx, mis, sampler, v, ray, sub):

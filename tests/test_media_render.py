@@ -19,13 +19,15 @@ chromatic and heterogeneous media against analytic values and Mitsuba's volpath.
 
 import hashlib
 import inspect
+import os
+import subprocess
 import sys
 
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import agreement, reference, render_batches
+from helpers import agreement, cached_reference, reference, render_batches
 
 RES = 16
 BATCHES = 16
@@ -192,13 +194,19 @@ def check_against_volpath(name, integrator, spp=256, mask=None):
     scene = mi.load_dict(SCENES[name]())
     ref = volpath_reference(name, integrator['max_depth'])
     mine = render_batches(scene, integrator, spp, BATCHES)
+    compare(mine, ref, f'{name} {integrator}', mask)
+
+
+def compare(mine, ref, what, mask=None):
+    """helpers.agreement of the batches ``mine`` and ``ref``, with the pixels where neither varies
+    compared to 1e-4 instead."""
     def flat(x):
         return (x.std(axis=0) <= 1e-6 * np.abs(x.mean(axis=0)) + 1e-12).all(axis=-1)
     constant = flat(ref) & flat(mine)
     np.testing.assert_allclose(mine[:, constant], ref[:, constant], rtol=1e-4, atol=1e-7)
     use = ~constant if mask is None else mask & ~constant
     ok, msg = agreement(mine, ref, alpha=0.01, mask=use)
-    assert ok, f'{name} {integrator}: {msg}'
+    assert ok, f'{what}: {msg}'
 
 
 # (the references at 4096 spp: at 1024, volpath's own heavy tails in fog failed a 4x4 block
@@ -252,3 +260,42 @@ def test_media_statistics_count_collisions():
     media = integ.last_render_info['media']
     assert media['real_collisions'] > 0 and media['null_collisions'] > 0
     assert media['medium_inconsistencies'] == 0
+
+
+VARIANT_RENDER = r"""
+import sys, numpy as np
+sys.path.insert(0, sys.argv[1])
+import mitsuba as mi
+mi.set_variant(sys.argv[2])
+mi.set_log_level(mi.LogLevel.Error)
+import bdpt_jit
+from test_media_render import SCENES, render_batches
+name, out, spp, batches, seed0, integ = sys.argv[3], sys.argv[4], int(sys.argv[5]), int(sys.argv[6]), int(sys.argv[7]), eval(sys.argv[8])
+np.save(out, render_batches(mi.load_dict(SCENES[name]()), integ, spp, batches, seed0))
+"""
+
+
+def variant_batches(tmp_path, variant, name, integ, spp, seed0=0):
+    """BATCHES batches of ``integ`` on scene ``name`` in ``variant``, rendered in a subprocess (a
+    process holds one variant: tests/test_variants.py)."""
+    out = os.path.join(str(tmp_path), f'{variant}-{name}-{seed0}.npy')
+    r = subprocess.run([sys.executable, '-c', VARIANT_RENDER, os.path.dirname(os.path.abspath(__file__)), variant,
+                        name, out, str(spp), str(BATCHES), str(seed0), repr(integ)],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return np.load(out)
+
+
+@pytest.mark.parametrize('variant,name,technique', [
+    ('llvm_ad_mono', 'glass-juice', 'bdpt'), ('llvm_ad_mono', 'smoke-box', 'pt'),
+    ('llvm_ad_spectral', 'glass-juice', 'bdpt'), ('llvm_ad_spectral', 'smoke-box', 'bdpt')])
+def test_other_variants_agree_with_volpath(tmp_path, variant, name, technique):
+    """Monochrome and spectral variants: the chromatic medium in glass (per wavelength in spectral
+    variants: one-sample spectral MIS over the sample's four wavelengths) and the heterogeneous grid."""
+    src = inspect.getsource(sys.modules[__name__])
+    key = hashlib.sha1(src[:src.index('\ndef bdpt(')].encode()).hexdigest()[:12]
+    ref = cached_reference(('media-variant', variant, name, RES, key),
+                           lambda: variant_batches(tmp_path, variant, name, {'type': 'volpath', 'max_depth': 6},
+                                                   2048, seed0=10_000))
+    mine = variant_batches(tmp_path, variant, name, bdpt(technique, 6), 256)
+    compare(mine, ref, f'{variant} {name} {technique}')
