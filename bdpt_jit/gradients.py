@@ -77,7 +77,13 @@ def check_parameters(params, scene=None):
     """Refuse gradient-enabled parameters whose derivative bdpt does not compute."""
     if params is None:
         return
+    media = _media(scene)
     for key in _grad_enabled_keys(params):
+        if media:
+            raise NotImplementedError(
+                f"bdpt: gradients with respect to '{key}' are not supported in a scene with participating "
+                f"media (the medium {media}): bdpt renders media without derivatives; differentiate this "
+                "scene with Mitsuba's prbvolpath")
         leaf = key.split('.')[-1]
         node = params.properties[key][2] if hasattr(params, 'properties') else None
         cls = str(node.class_name()) if node is not None else ''
@@ -128,6 +134,15 @@ def geometry_keys(params):
         return []
     return [k for k in _grad_enabled_keys(params)
             if k.split('.')[-1] in _GEOMETRY_LEAVES or k.endswith('to_world')]
+
+
+def _media(scene):
+    """The first medium of the scene, named (scene_check.describe_medium), or ''."""
+    if scene is None:
+        return ''
+    from .scene_check import describe_medium, scene_media
+    found = scene_media(scene)
+    return describe_medium(found[0]) if found else ''
 
 
 def _delta_emitters(scene):

@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -265,6 +266,7 @@ def test_media_statistics_count_collisions():
 VARIANT_RENDER = r"""
 import sys, numpy as np
 sys.path.insert(0, sys.argv[1])
+import drjit as dr
 import mitsuba as mi
 mi.set_variant(sys.argv[2])
 mi.set_log_level(mi.LogLevel.Error)
@@ -299,3 +301,27 @@ def test_other_variants_agree_with_volpath(tmp_path, variant, name, technique):
                                                    2048, seed0=10_000))
     mine = variant_batches(tmp_path, variant, name, bdpt(technique, 6), 256)
     compare(mine, ref, f'{variant} {name} {technique}')
+
+
+@pytest.mark.parametrize('key', ['fog.sigma_t.value.value', 'light.emitter.radiance.value', 'walls.bsdf.reflectance.value'])
+def test_gradients_with_media_are_refused_naming_the_key(key):
+    """Media are rendered without derivatives: a gradient-enabled parameter of a scene with a
+    medium (the medium's own, an emitter's, a BSDF's) is refused naming it and the medium."""
+    scene = mi.load_dict(fog_room())
+    params = mi.traverse(scene)
+    assert key in params, list(params.keys())
+    dr.enable_grad(params[key])
+    params.update()
+    integ = mi.load_dict(bdpt('bdpt', 4))
+    with pytest.raises(Exception) as info:
+        img = mi.render(scene, params, integrator=integ, spp=1)
+        dr.backward(dr.sum(img))
+    text = ' '.join(str(e) for e in _chain(info.value))
+    assert f"gradients with respect to '{key}' are not supported in a scene with participating media " \
+           "(the medium 'fog' (homogeneous))" in text
+
+
+def _chain(e):
+    while e is not None:
+        yield e
+        e = e.__cause__ or e.__context__
