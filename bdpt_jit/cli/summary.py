@@ -21,6 +21,9 @@ def features(info):
         ('light subpath pass', bool(info.get('light_pass')), 'needed by the light-tracing, connection and merging strategies'),
         ('camera subpath pass', bool(info.get('camera_pass')), 'needed by the s=0, s=1, connection and merging strategies'),
         ('delta (specular) BSDF handling', bool(info.get('delta_handling')), 'the scene has a BSDF with a delta lobe'),
+        ('participating media', 'media' in info, 'the scene has a medium: distance sampling, transmittance on every edge'),
+        ('heterogeneous media tracking', bool(info.get('media', {}).get('heterogeneous')),
+         'delta and ratio tracking with the majorant'),
     ]
 
 
@@ -91,6 +94,10 @@ def _bdpt_statistics(info):
         stats['light_cache'] = (f"{lc['light_paths_per_sample']:g} light subpaths per camera sample, {c} "
                                 f"connection{'' if c == 1 else 's'} per camera vertex, "
                                 f"{lc['pilot_vertices_per_path']:.3g} vertices per light subpath (pilot)")
+    media = info.get('media', {})
+    if 'real_collisions' in media:         # statistics with media (media.py)
+        stats['media'] = (f"{media['real_collisions']:,} real collisions, {media['null_collisions']:,} null collisions, "
+                          f"{media['medium_inconsistencies']:,} connections refused (their ends disagree about the medium)")
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
         stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of trials; efficiency "
@@ -123,7 +130,7 @@ def print_summary(stats, res, out, png):
             p(f"  left out        {stats['strategies_left_out']}")
         for name, on, why in features(res.info):
             p(f"  {'needed' if on else 'left out':15} {name}" + (f" ({why})" if on else ''))
-    for key in ('light_cache', 'auto'):
+    for key in ('light_cache', 'auto', 'media'):
         if key in stats:
             p(f"  {key.replace('_', ' '):15} {stats[key]}")
     if res.layers is not None:
