@@ -22,15 +22,31 @@ Conventions of Mitsuba 3.9.1 the scenes rely on (each checked in tests/test_medi
   (z, y, x, channels) float32; the grid fills the unit cube, placed by its ``to_world``.
 """
 
+import hashlib
 import math
+import os
 
 import mitsuba as mi
 import numpy as np
 
+import stability_cases
 from stability_cases import T, diffuse, rgb, sensor
 
 REF_SEED = 10_000           # first seed of the references' batches (as test_agreement.py)
 FLOAT_FLOOR = 1e-5          # helpers.agreement's relative resolution here: float32 rounding is no bias
+
+
+def _source_hash():
+    """A hash of this file and stability_cases.py (which the builders use): part of every cached
+    reference's key, so that a changed scene is rendered afresh."""
+    h = hashlib.sha1()
+    for path in (os.path.abspath(__file__), os.path.abspath(stability_cases.__file__)):
+        with open(path, 'rb') as f:
+            h.update(f.read())
+    return h.hexdigest()[:12]
+
+
+SOURCE_HASH = _source_hash()
 
 
 # ------------------------------------------------------------------------------- pieces
@@ -314,10 +330,11 @@ def in_medium(shape, medium):
 
 def closed_room(medium='fog'):
     """The six diffuse walls of the box [-1, 1]^3 facing inwards (red left, green right), each
-    with ``medium`` on both sides (None: no medium declared)."""
+    with ``medium`` on both sides (None: no medium declared). Each wall reaches 1% past the
+    box's edges: walls that only meet there let rays slip through the seams."""
     out = {}
     for name, (tf, albedo) in WALLS.items():
-        w = {'type': 'rectangle', 'to_world': tf, 'bsdf': diffuse(albedo)}
+        w = {'type': 'rectangle', 'to_world': tf @ T().scale([1.01, 1.01, 1.0]), 'bsdf': diffuse(albedo)}
         out[name] = in_medium(w, medium) if medium else w
     return out
 
@@ -344,14 +361,16 @@ def grid_box(scale=4.0, albedo=0.8, g=0.3, grid='blob', sky=0.2, res=16):
     """(e) A heterogeneous grid in a null box under a small light and a sky: the cube
     [-0.6, 0.6]^3 with a null BSDF holds sigma_t = ``scale`` * density_grid(``grid``) (trilinear;
     'blob' is 0 in the corner voxels), ``albedo``, HG ``g``; a diffuse floor (albedo 0.5) at
-    y = -0.6 under it; a spherical light (radius 0.1, radiance 100) above at (0.5, 1.5, 0.5); a
-    constant sky of ``sky``. The camera at (0, 0.6, 3) in vacuum. Pixels seeing the sky are
-    beyond light tracing (media_lt_mask)."""
+    y = -0.65 under it (not touching it: a ray leaving the box through a face that coincides
+    with the floor would pass the floor); a spherical light (radius 0.1, radiance 100) above at
+    (0.5, 1.5, 0.5); a constant sky of ``sky``. The camera at (0, 1.6, 2.6) in vacuum, looking
+    down at the box (the sky in the top five rows of 16). Pixels seeing the sky are beyond light
+    tracing (media_lt_mask)."""
     return scene(
-        sensor=_camera(res, [0, 0.6, 3.0], [0, -0.1, 0], 45.0),
+        sensor=_camera(res, [0, 1.6, 2.6], [0, -0.2, 0], 45.0),
         medium=heterogeneous(density_grid(grid), scale, albedo, g, half=0.6),
         box=null_cube(0.6),
-        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.6, 0]).rotate([1, 0, 0], -90).scale(3.0),
+        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.65, 0]).rotate([1, 0, 0], -90).scale(3.0),
                'bsdf': diffuse(0.5)},
         light={'type': 'sphere', 'center': [0.5, 1.5, 0.5], 'radius': 0.1,
                'emitter': {'type': 'area', 'radiance': rgb(100.0)}},
@@ -417,11 +436,11 @@ def media_reference(name, max_depth, which='volpath', spp=256, batches=16, seed0
     """Reference batches (K, H, W, 3) of Mitsuba's ``which`` ('volpath' or 'volpathmis') at
     ``max_depth`` on the scene ``BUILDERS[name](**params)``, ``batches`` batches of ``spp``
     samples from seed ``seed0``, cached under tests/.refcache (helpers.reference) by the scene's
-    name and parameters, the variant, the integrator and its ``integrator_params`` (e.g.
-    ``{'rr_depth': 10000}``), spp, batches and seeds."""
+    name and parameters, the source of the builders (SOURCE_HASH), the variant, the integrator
+    and its ``integrator_params`` (e.g. ``{'rr_depth': 10000}``), spp, batches and seeds."""
     from helpers import reference
     params = dict(params or {})
-    key = ('media_scenes', name, tuple(sorted(params.items())), mi.variant())
+    key = ('media_scenes', SOURCE_HASH, name, tuple(sorted(params.items())), mi.variant())
     integ = {'type': which, 'max_depth': max_depth, **(integrator_params or {})}
     return reference(key, lambda: load(name, **params), integ, spp, batches, seed0)
 
@@ -488,5 +507,50 @@ def assert_value(batches, expected, what, mask=None, z=4.0, alpha=0.01, rtol=1e-
                      np.where(np.abs(mean) <= rtol * ev + 1e-7, 0.0, np.inf))
         p = 2 * stats.t.sf(t, K - 1)
         thr = 1 - (1 - alpha) ** (1 / p.size)
-        assert p.min() >= thr, (f'{what}: {name} {np.unravel_index(p.argmin(), p.shape)} mean diff '
-                                f'{mean.ravel()[p.argmin()]:.4g} (se {s.ravel()[p.argmin()]:.3g}), p {p.min():.3g} < {thr:.3g}')
+        i = p.argmin()
+        assert p.min() >= thr, (f'{what}: {name} {np.unravel_index(i, p.shape)} mean diff {mean.ravel()[i]:.4g} '
+                                f'(se {s.ravel()[i]:.3g}), p {p.min():.3g} < {thr:.3g}')
+
+
+def furnace_lt_expected(inside=False, sigma_t=1.0, radius=1.0, res=16, n=8):
+    """What light tracing (technique lt) renders in a homogeneous ``furnace``: everything but the
+    emitter seen directly through the medium, 1 - exp(-sigma_t chord) per camera ray (the chord
+    inside the sphere; continuous at the silhouette), by pixel quadrature (H, W)."""
+    sc = mi.load_dict(furnace('homogeneous', 0.0, inside, sigma_t, radius, res=res))
+
+    def radiance(o, d):
+        t_in, t_out, hit = sphere_chord(o, d, (0, 0, 0), radius)
+        return np.where(hit, 1.0 - np.exp(-sigma_t * (t_out - t_in)), 0.0)
+    return pixel_quadrature(sc, radiance, n)
+
+
+def media_refusal():
+    """The message with which ``bdpt`` refuses a scene with a medium today, or None once it
+    renders one (a 2x2 render of a null sphere of fog under a constant emitter). Any other error
+    is raised: only this refusal may skip the tests that need media."""
+    sc = mi.load_dict(scene(
+        sensor=_camera(2, [0, 0, 3], [0, 0, 0], 30.0), medium=homogeneous(1.0, 0.5),
+        sphere=null_sphere(1.0), sky=constant_sky(1.0)))
+    try:
+        mi.render(sc, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 2}), spp=1)
+    except Exception as e:      # the refusal arrives wrapped in drjit.custom's RuntimeError
+        x = e
+        while x is not None:
+            if 'participating media are not supported' in str(x):
+                return str(x)
+            x = x.__cause__ or x.__context__
+        raise
+    return None
+
+
+def strategy_batches(scene_obj, integrator, spp, batches, seed0=0):
+    """(images (K, H, W, 3), {layer: {'weighted': (K, H, W, 3), 'unweighted': ...}}) of
+    ``batches`` renders of bdpt with ``strategy_images`` (integrator.strategy_images per render)."""
+    integ = mi.load_dict({**integrator, 'strategy_images': True})
+    imgs, layers = [], {}
+    for b in range(batches):
+        imgs.append(np.array(mi.render(scene_obj, integrator=integ, spp=spp, seed=seed0 + b), np.float64)[:, :, :3])
+        for name, kinds in integ.strategy_images.items():
+            for kind, a in kinds.items():
+                layers.setdefault(name, {}).setdefault(kind, []).append(np.asarray(a, np.float64))
+    return np.stack(imgs), {n: {k: np.stack(v) for k, v in kinds.items()} for n, kinds in layers.items()}
