@@ -2,9 +2,10 @@
 furnaces, single scattering strategy by strategy) and agreement with Mitsuba's `volpath` and
 `volpathmis`, whose scenes and values tests/test_media_scenes.py checks.
 
-The whole module is skipped while bdpt refuses scenes with media (media_scenes.media_refusal
-finds that refusal's message, and nothing else, on a 2x2 render); it runs as soon as the kernels
-accept media, with no edit here.
+The whole module is skipped while bdpt refuses scenes with media (media_scenes.media_refusals
+finds that refusal's message, and nothing else, on a 2x2 render in a subprocess); it runs as soon
+as the kernels accept media, with no edit here. A technique that refuses media on its own (vcm,
+while merging in media is not built) skips its cases with its message.
 
 Statistics (as test_agreement.py): 16 batches with fixed seeds; analytic values by
 media_scenes.assert_value (image mean within 4 standard errors; 4x4 blocks and pixels by
@@ -27,14 +28,17 @@ import pytest
 import media_scenes as ms
 from helpers import agreement, render_batches
 
-REFUSAL = ms.media_refusal()
-pytestmark = pytest.mark.skipif(REFUSAL is not None, reason='media not wired yet')
-
 K = 16
 TECHNIQUES = ['bdpt', 'pt', 'lt', 'vcm']
+REFUSED = ms.media_refusals(TECHNIQUES)         # probed in a subprocess
+pytestmark = pytest.mark.skipif(REFUSED['bdpt'] is not None, reason='media not wired yet')
 
 
 def bdpt(technique='bdpt', mis='power', max_depth=-1, **params):
+    """bdpt's integrator dict; a technique that refuses media (vcm while merging in media is
+    not built) skips the test that asks for it, with its refusal as the reason."""
+    if REFUSED[technique] is not None:
+        pytest.skip(f'{technique} with media: {REFUSED[technique]}')
     return {'type': 'bdpt', 'technique': technique, 'mis': mis, 'max_depth': max_depth, **params}
 
 
@@ -97,11 +101,11 @@ STIFF_FURNACES = [
 def furnace_case(technique, mis, kind, g, inside, sigma_t, radius, grid):
     b = render_batches(ms.load('furnace', kind=kind, g=g, inside=inside, sigma_t=sigma_t, radius=radius, grid=grid),
                        bdpt(technique, mis, -1), 16, K)
+    value, mask = ms.FURNACE_VALUE, None
     if technique == 'lt':       # all but the sky seen directly through the medium
-        value = ms.furnace_lt_expected(inside, sigma_t, radius)[..., None]
-    else:
-        value = ms.FURNACE_VALUE
-    ms.assert_value(b, value, f'{technique}/{mis} furnace {kind} g {g} inside {inside} sigma_t {sigma_t} {grid}')
+        value, mask = ms.furnace_lt_expected(inside, sigma_t, radius)
+    ms.assert_value(b, value, f'{technique}/{mis} furnace {kind} g {g} inside {inside} sigma_t {sigma_t} {grid}',
+                    mask=mask)
 
 
 @pytest.mark.parametrize('technique', ['bdpt', 'pt', 'vcm'])
@@ -111,17 +115,20 @@ def test_furnace(technique, kind, g, inside, sigma_t, radius, grid):
     furnace_case(technique, 'power', kind, g, inside, sigma_t, radius, grid)
 
 
-@pytest.mark.parametrize('inside', [False, True])
 @pytest.mark.parametrize('g', [0.0, 0.7])
-def test_furnace_light_tracing(inside, g):
+def test_furnace_light_tracing(g):
     """(b) lt renders the furnace less the sky seen directly: 1 - exp(-sigma_t chord)
-    (homogeneous: the chord is analytic)."""
-    furnace_case('lt', 'power', 'homogeneous', g, inside, 1.0, 1.0, 'blob')
+    (homogeneous: the chord is analytic). Camera outside only: with the camera in the medium lt
+    has infinite variance (a light vertex at distance d contributes ~ 1/d^2; measured on main
+    5f11042: 4x4 blocks 5 and 14 standard errors low at 16 x 16 spp, as heavy tails do)."""
+    furnace_case('lt', 'power', 'homogeneous', g, False, 1.0, 1.0, 'blob')
 
 
-@pytest.mark.parametrize('mis', ['balance', 'uniform'])
-def test_furnace_other_weights(mis):
-    furnace_case('bdpt', mis, 'heterogeneous', 0.7, True, 1.0, 1.0, 'blob')
+@pytest.mark.parametrize('mis,inside', [('balance', True), ('uniform', False)])
+def test_furnace_other_weights(mis, inside):
+    """Balance and uniform weights; uniform with the camera outside (uniform weights keep light
+    tracing's infinite variance with the camera in a medium)."""
+    furnace_case('bdpt', mis, 'heterogeneous', 0.7, inside, 1.0, 1.0, 'blob')
 
 
 @pytest.mark.parametrize('technique', ['bdpt', 'pt'])
@@ -131,7 +138,10 @@ def test_furnace_stiff(technique, kind, g, inside, sigma_t, radius, grid):
     furnace_case(technique, 'power', kind, g, inside, sigma_t, radius, grid)
 
 
-SINGLE = [(1.0, 0.5, 0.0), (1.0, 0.5, 0.7), (3.0, 0.9, -0.5)]
+# Optically thin enough for light tracing's splats to reach every pixel tested (at sigma_t 3 the
+# far side's pixels get a few splats per batch: the s=2 layer is sparse, and t-tests fail without
+# any bias: measured on main 5f11042, a pixel that scored in one batch of 16 x 64 spp).
+SINGLE = [(1.0, 0.5, 0.0), (1.0, 0.5, 0.7), (0.5, 0.9, -0.5)]
 
 
 @pytest.mark.parametrize('sigma_t,albedo,g', SINGLE)
@@ -144,7 +154,7 @@ def test_single_scattering_each_strategy(sigma_t, albedo, g):
     to 1."""
     val, mask = ms.single_scatter_expected(sigma_t, albedo, g)
     sc = ms.load('single_scatter', sigma_t=sigma_t, albedo=albedo, g=g)
-    img, layers = ms.strategy_batches(sc, bdpt('bdpt', 'power', 2), 64, K)
+    img, layers = ms.strategy_batches(sc, bdpt('bdpt', 'power', 2), 256, K)
     what = f'single scattering sigma_t {sigma_t} g {g}'
     ms.assert_value(img, val, what + ' image', mask=mask)
     for name in ('s1_t2', 's2_t1'):
@@ -155,28 +165,29 @@ def test_single_scattering_each_strategy(sigma_t, albedo, g):
 @pytest.mark.parametrize('technique', ['pt', 'lt'])
 def test_single_scattering_pt_lt(technique):
     val, mask = ms.single_scatter_expected(1.0, 0.5, 0.7)
-    b = render_batches(ms.load('single_scatter', g=0.7), bdpt(technique, 'power', 2), 64, K)
+    b = render_batches(ms.load('single_scatter', g=0.7), bdpt(technique, 'power', 2), 256, K)
     ms.assert_value(b, val, f'{technique} single scattering', mask=mask)
 
 
 # --------------------------------------------------------------- agreement with volpath
+# No lt, and no uniform weights, where the camera is in a medium (fog_room, volumetric_caustic):
+# infinite variance (fog_room's docstring); measured on main 5f11042, lt -1.0% (fog room) and
+# +0.7% (caustic) with single pixels failing. References at 4x bdpt's samples per batch: at equal
+# counts volpath's batch means in the fog room are skewed enough for one pixel in 768 to fail.
 AGREE = [
     # (scene, params, max_depth, technique, mis, spp per batch, reference spp per batch)
-    ('fog_room', {}, 5, 'bdpt', 'power', 64, 64),
-    ('fog_room', {}, 5, 'pt', 'power', 64, 64),
-    ('fog_room', {}, 5, 'lt', 'power', 64, 64),
-    ('fog_room', {}, 5, 'bdpt', 'balance', 64, 64),
-    ('fog_room', {'light': 'point', 'g': 0.5}, 5, 'bdpt', 'power', 64, 64),
-    ('fog_room', {'light': 'point', 'g': 0.5}, 5, 'lt', 'power', 64, 64),
-    ('grid_box', {}, 5, 'bdpt', 'power', 64, 64),
-    ('grid_box', {}, 5, 'pt', 'power', 64, 64),
-    ('grid_box', {}, 5, 'lt', 'power', 64, 64),
-    ('glass_media', {}, 6, 'bdpt', 'power', 64, 128),
-    ('glass_media', {}, 6, 'pt', 'power', 128, 128),
-    ('glass_media', {}, 6, 'lt', 'power', 64, 128),
-    ('volumetric_caustic', {'light_radius': 0.15}, 6, 'bdpt', 'power', 64, 128),
-    ('volumetric_caustic', {'light_radius': 0.15}, 6, 'lt', 'power', 64, 128),
-    ('volumetric_caustic', {'light_radius': 0.15}, 6, 'vcm', 'power', 64, 128),
+    ('fog_room', {}, 5, 'bdpt', 'power', 64, 256),
+    ('fog_room', {}, 5, 'pt', 'power', 256, 256),
+    ('fog_room', {}, 5, 'bdpt', 'balance', 64, 256),
+    ('fog_room', {'light': 'sphere', 'g': 0.5}, 5, 'bdpt', 'power', 64, 256),
+    ('grid_box', {}, 5, 'bdpt', 'power', 64, 256),
+    ('grid_box', {}, 5, 'pt', 'power', 256, 256),
+    ('grid_box', {}, 5, 'lt', 'power', 64, 256),
+    ('glass_media', {}, 6, 'bdpt', 'power', 64, 256),
+    ('glass_media', {}, 6, 'pt', 'power', 256, 256),
+    ('glass_media', {}, 6, 'lt', 'power', 64, 256),
+    ('volumetric_caustic', {'light_radius': 0.15}, 6, 'bdpt', 'power', 64, 256),
+    ('volumetric_caustic', {'light_radius': 0.15}, 6, 'vcm', 'power', 64, 256),
 ]
 
 
@@ -199,11 +210,13 @@ def test_agrees_with_volpath(name, params, max_depth, technique, mis, spp, ref_s
     agree_case(name, params, max_depth, technique, mis, spp, ref_spp)
 
 
+CAMERA_IN_MEDIUM = ('fog_room', 'volumetric_caustic')
 FULL = [(n, p, d, t, m, 128, 512)
-        for n, p, d in (('fog_room', {}, 8), ('fog_room', {'light': 'point', 'g': -0.5}, 3),
+        for n, p, d in (('fog_room', {}, 8), ('fog_room', {'light': 'sphere', 'g': -0.5}, 3),
                         ('grid_box', {'g': 0.9}, 8), ('glass_media', {}, 8),
                         ('volumetric_caustic', {}, 8), ('volumetric_caustic', {'glass': False}, 4))
-        for t in ('bdpt', 'pt', 'lt') for m in ('power', 'balance', 'uniform')]
+        for t in ('bdpt', 'pt', 'lt') for m in ('power', 'balance', 'uniform')
+        if not (n in CAMERA_IN_MEDIUM and (t == 'lt' or m == 'uniform'))]
 
 
 @pytest.mark.slow
@@ -238,7 +251,7 @@ VARIANT_CASES = [
     ('llvm_ad_mono', 'grid_box', {}, 5, 'bdpt'),
     ('llvm_ad_mono', 'glass_media', {}, 6, 'lt'),
     ('llvm_ad_spectral', 'fog_room', {}, 5, 'bdpt'),
-    ('llvm_ad_spectral', 'fog_room', {'light': 'point', 'g': 0.5}, 5, 'pt'),
+    ('llvm_ad_spectral', 'fog_room', {'light': 'sphere', 'g': 0.5}, 5, 'pt'),
     ('llvm_ad_spectral', 'glass_media', {}, 6, 'bdpt'),
     ('llvm_ad_spectral', 'volumetric_caustic', {'light_radius': 0.15}, 6, 'bdpt'),
 ]

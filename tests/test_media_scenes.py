@@ -146,7 +146,8 @@ def test_single_scattering_depth_convention():
 AGREEMENT = [
     # (scene, params, max_depth, spp per batch): volpath and volpathmis, 16 batches each
     ('fog_room', {}, 5, 64),
-    ('fog_room', {'light': 'point', 'g': 0.5}, 5, 64),
+    ('fog_room', {'light': 'point', 'g': 0.5}, 5, 64),        # both share the point light's 1/d^2
+    ('fog_room', {'light': 'sphere', 'g': 0.5}, 5, 64),
     ('grid_box', {}, 5, 64),
     ('glass_media', {}, 6, 128),
     ('volumetric_caustic', {'light_radius': 0.15}, 6, 128),
