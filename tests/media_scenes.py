@@ -121,8 +121,10 @@ def scene(**objects):
     return {'type': 'scene', **objects}
 
 
-def _camera(res, origin, target, fov, medium=None, up=(0, 1, 0), near_clip=1e-3):
-    s = sensor(origin, target, up=up, fov=fov, res=res, near_clip=near_clip)
+def _camera(res, origin, target, fov, medium=None, up=(0, 1, 0), near_clip=1e-3, far_clip=1e4):
+    """A perspective camera (stability_cases.sensor) in the top-level medium ``medium`` (an id).
+    Mitsuba clips camera rays at ``far_clip``: a scene larger than it needs a larger one."""
+    s = sensor(origin, target, up=up, fov=fov, res=res, near_clip=near_clip, far_clip=far_clip)
     if medium is not None:
         s['medium'] = ref(medium)
     return s
@@ -143,7 +145,8 @@ def absorbing_sphere(sigma_t=1.0, radius=1.0, translate=(0.0, 0.0, 0.0), res=16)
     scene scaled by 1e-3; translate 1e4 far from the origin)."""
     c = [float(v) for v in translate]
     return scene(
-        sensor=_camera(res, c, [c[0], c[1], c[2] - 1.0], 60.0, medium='medium', near_clip=1e-7 * radius),
+        sensor=_camera(res, c, [c[0], c[1], c[2] - 1.0], 60.0, medium='medium', near_clip=1e-7 * radius,
+                       far_clip=1e4 * max(radius, 1.0)),
         medium=homogeneous(sigma_t, 0.0),
         sphere=null_sphere(radius, c),
         sky=constant_sky(1.0))
@@ -199,10 +202,11 @@ def furnace(kind='homogeneous', g=0.0, inside=False, sigma_t=1.0, radius=1.0, gr
         med = homogeneous(sigma_t, 1.0, g)
     else:
         med = heterogeneous(density_grid(grid), sigma_t, 1.0, g, half=radius)
+    far = 1e4 * max(radius, 1.0)
     if inside:
-        cam = _camera(res, [0, 0, 0], [0, 0, -1], 60.0, medium='medium', near_clip=1e-7 * radius)
+        cam = _camera(res, [0, 0, 0], [0, 0, -1], 60.0, medium='medium', near_clip=1e-7 * radius, far_clip=far)
     else:
-        cam = _camera(res, [0, 0, 3.0 * radius], [0, 0, 0], 45.0, near_clip=1e-3 * radius)
+        cam = _camera(res, [0, 0, 3.0 * radius], [0, 0, 0], 45.0, near_clip=1e-3 * radius, far_clip=far)
     return scene(sensor=cam, medium=med, sphere=null_sphere(radius), sky=constant_sky(1.0))
 
 

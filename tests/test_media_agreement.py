@@ -100,7 +100,7 @@ STIFF_FURNACES = [
 
 def furnace_case(technique, mis, kind, g, inside, sigma_t, radius, grid):
     b = render_batches(ms.load('furnace', kind=kind, g=g, inside=inside, sigma_t=sigma_t, radius=radius, grid=grid),
-                       bdpt(technique, mis, -1), 16, K)
+                       bdpt(technique, mis, -1), 64, K)
     value, mask = ms.FURNACE_VALUE, None
     if technique == 'lt':       # all but the sky seen directly through the medium
         value, mask = ms.furnace_lt_expected(inside, sigma_t, radius)
