@@ -98,6 +98,7 @@ FURNACES = [
     ('homogeneous', 0.99, False, 1.0, 1.0, 'blob'),
     ('homogeneous', -0.99, False, 1.0, 1.0, 'blob'),
     ('homogeneous', 0.0, True, 1e-4, 1e4, 'blob'),       # thin and large
+    ('homogeneous', 0.0, False, 1e-4, 1e4, 'blob'),
     ('homogeneous', 0.0, False, 1e3, 3e-3, 'blob'),      # dense and small: optical radius 3
     ('heterogeneous', 0.0, False, 2.0, 1.0, 'single'),
     ('heterogeneous', 0.0, True, 2.0, 1.0, 'octants'),
