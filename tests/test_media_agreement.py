@@ -19,9 +19,8 @@ infinite variance (media_scenes.fog_room; docs/media-scenes.md).
 
 Cost, measured against main 5f11042's kernels (2 cores shared): the module (not slow) in ~100 s
 with its references rendered, each case 0.2-3 s once compiled; the agreement cases 3-9 s with
-their two references (volpath and volpathmis, 16 x 256 spp: cached under tests/.refcache).
+their two references (volpath and volpathmis, 16 x 256 spp: cached under tests/.refcache)."""
 
-import math
 
 import mitsuba as mi
 import numpy as np
