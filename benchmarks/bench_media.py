@@ -3,8 +3,8 @@
 scenes/media/volumetric-caustic.xml) and on the same fog without the glass (scenes/media/fog.xml):
 relative MSE against time.
 
-    python benchmarks/bench_media.py --scenes caustic,fog --res 64 --budget 16 --repeats 3 \\
-        --integrators volpath,volpathmis,bdpt --ref-integrator volpathmis --ref-spp 8192
+    python benchmarks/bench_media.py --scenes caustic,fog --res 32 --budget 16 --repeats 2 \\
+        --integrators volpath,volpathmis,bdpt --ref-integrator bdpt --ref-spp 16384
 
 Issue 23's targets: at 16 s, bdpt's relMSE <= 0.05 x volpath's on the caustic and <= 1.0 x on the
 fog. For each scene: a reference (``--ref-integrator`` at ``--ref-spp``, in batches of 64; cached
@@ -13,8 +13,8 @@ in ``--cache-dir``), then each integrator renders one warm-up image (compilation
 budget/8, budget/4, budget/2 and budget (``--repeats`` runs with seeds of their own, medians
 reported; the ratio to volpath is taken at the same checkpoint, the time column says when each
 was reached). ``--region no-delta`` measures only the pixels that do not see glass (the caustic
-cone in the fog, not the caustic seen through the sphere, which no connection renders). relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels (as
-bench_light_cache.py). The reference's own error is part of every figure: on the caustic,
+cone in the fog, not the caustic seen through the sphere, which no connection renders).
+relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels (as bench_light_cache.py). The reference's own error is part of every figure: on the caustic,
 `volpath` and `volpathmis` converge slowly (that is the point of the scene), so give the
 reference many more samples than any contestant reaches, or, once bdpt renders media, take
 ``--ref-integrator bdpt``. While bdpt refuses media, its rows are one line saying so."""
@@ -142,7 +142,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--scenes', default='caustic,fog', help=f'comma-separated: {", ".join(SCENES)}, or scene files')
     ap.add_argument('--integrators', default='volpath,volpathmis,bdpt')
-    ap.add_argument('--res', type=int, default=64)
+    ap.add_argument('--res', type=int, default=32)
     ap.add_argument('--max-depth', type=int, default=8)
     ap.add_argument('--budget', type=float, default=16.0, help='seconds per run')
     ap.add_argument('--batch-spp', type=int, default=16,
