@@ -88,13 +88,15 @@ def file_reference(name, res, max_depth, which, spp, batches, seed0, **params):
                      {'type': which, 'max_depth': max_depth, **params}, spp, batches, seed0)
 
 
-def welch(a, b):
+def welch(a, b, floor=0.0):
     """Per-entry Welch t-test of the means of batches a (K1, ...) and b (K2, ...).
-    Returns two-sided p-values (1 where both are noise-free and equal, 0 where they differ)."""
+    Returns two-sided p-values (1 where both are noise-free and equal, 0 where they differ).
+    ``floor``: a relative resolution added to the standard error (floor times the larger mean),
+    for entries that are deterministic up to float32 rounding in one estimator and not the other."""
     k1, k2 = a.shape[0], b.shape[0]
     m1, m2 = a.mean(0), b.mean(0)
     v1, v2 = a.var(0, ddof=1) / k1, b.var(0, ddof=1) / k2
-    se2 = v1 + v2
+    se2 = v1 + v2 + (floor * np.maximum(np.abs(m1), np.abs(m2))) ** 2
     diff = m1 - m2
     with np.errstate(divide='ignore', invalid='ignore'):
         t = diff / np.sqrt(se2)
@@ -105,20 +107,20 @@ def welch(a, b):
     return p
 
 
-def agreement(a, b, alpha=0.01, mask=None):
+def agreement(a, b, alpha=0.01, mask=None, floor=0.0):
     """Welch's t per pixel and channel with Sidak's correction at level alpha over all the
     tested entries, plus the same test on 4x4-pixel blocks (more power against small regional
-    bias). Returns (passed, message)."""
+    bias). ``floor``: welch's relative resolution. Returns (passed, message)."""
     if mask is None:
         mask = np.ones(a.shape[1:3], bool)
-    p_px = welch(a, b)[mask]
+    p_px = welch(a, b, floor)[mask]
     def blocks(x):
         K, H, W, C = x.shape
         h, w = H // 4 * 4, W // 4 * 4
         return x[:, :h, :w].reshape(K, h // 4, 4, w // 4, 4, C).mean(axis=(2, 4))
     bm = mask[:mask.shape[0] // 4 * 4, :mask.shape[1] // 4 * 4]
     bm = bm.reshape(bm.shape[0] // 4, 4, bm.shape[1] // 4, 4).all(axis=(1, 3))
-    p_bl = welch(blocks(a), blocks(b))[bm]
+    p_bl = welch(blocks(a), blocks(b), floor)[bm]
     msgs, ok = [], True
     for name, p in (('pixel', p_px), ('4x4 block', p_bl)):
         n = p.size

@@ -1,0 +1,176 @@
+"""Equal time with participating media (issue 23's figures): `bdpt` against Mitsuba's `volpath` and
+`volpathmis` on a volumetric caustic (a small light above a glass sphere in fog,
+scenes/media/volumetric-caustic.xml) and on the same fog without the glass (scenes/media/fog.xml):
+relative MSE against time.
+
+    python benchmarks/bench_media.py --scenes caustic,fog --res 32 --budget 16 --repeats 2 \\
+        --integrators volpath,volpathmis,bdpt --ref-integrator bdpt --ref-spp 16384
+
+Issue 23's targets: at 16 s, bdpt's relMSE <= 0.05 x volpath's on the caustic and <= 1.0 x on the
+fog. For each scene: a reference (``--ref-integrator`` at ``--ref-spp``, in batches of 64; cached
+in ``--cache-dir``), then each integrator renders one warm-up image (compilation), then batches of
+``--batch-spp`` until ``--budget`` seconds, its running mean's relMSE taken at the checkpoints
+budget/8, budget/4, budget/2 and budget (``--repeats`` runs with seeds of their own, medians
+reported; the ratio to volpath is taken at the same checkpoint, the time column says when each
+was reached). ``--region no-delta`` measures only the pixels that do not see glass (the caustic
+cone in the fog, not the caustic seen through the sphere, which no connection renders).
+relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels (as bench_light_cache.py). The reference's own error is part of every figure: on the caustic,
+`volpath` and `volpathmis` converge slowly (that is the point of the scene), so give the
+reference many more samples than any contestant reaches, or, once bdpt renders media, take
+``--ref-integrator bdpt``. While bdpt refuses media, its rows are one line saying so."""
+
+import argparse
+import hashlib
+import os
+import sys
+import time
+
+import mitsuba as mi
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_light_cache import load  # noqa: E402  (the scene at res x res, its $res and $max_depth)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENES = {'caustic': os.path.join(REPO, 'scenes', 'media', 'volumetric-caustic.xml'),
+          'fog': os.path.join(REPO, 'scenes', 'media', 'fog.xml')}
+CHECKPOINTS = (0.125, 0.25, 0.5, 1.0)       # fractions of the budget
+
+
+def integrator(name, max_depth):
+    """The integrator dict of a contestant: Mitsuba's volpath or volpathmis, or bdpt with a
+    technique (bdpt, pt, lt, vcm)."""
+    if name in ('volpath', 'volpathmis'):
+        return {'type': name, 'max_depth': max_depth}
+    if name in ('bdpt', 'pt', 'lt', 'vcm'):
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': name}
+    raise ValueError(f'unknown integrator {name!r} (volpath, volpathmis, bdpt, pt, lt, vcm)')
+
+
+def refusal(exc):
+    """The message of bdpt's refusal of media in ``exc``'s chain (drjit wraps it), or None."""
+    while exc is not None:
+        if 'participating media are not supported' in str(exc):
+            return str(exc)
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def relmse(img, ref, mask=None):
+    """mean((I - R)^2 / (R^2 + 1e-2)) over the pixels of ``mask`` (None: all) and the channels."""
+    e = (img - ref) ** 2 / (ref ** 2 + 1e-2)
+    return float(np.mean(e if mask is None else e[mask]))
+
+
+def region(path, args):
+    """The pixels measured: None (all), or with ``--region no-delta`` those whose footprint ends on
+    surfaces without a delta lobe (tests/media_scenes.media_lt_mask: glass seen directly, with
+    what it shows, left out; the volumetric caustic in the fog stays)."""
+    if args.region == 'all':
+        return None
+    sys.path.insert(0, os.path.join(REPO, 'tests'))
+    from media_scenes import media_lt_mask
+    scene, _ = load(path, args.res, args.max_depth, integrator('volpath', args.max_depth))
+    return media_lt_mask(scene)
+
+
+def reference(path, args):
+    """``--ref-integrator`` at --ref-spp in batches of 64, cached by scene, resolution, depth,
+    integrator and Mitsuba's version."""
+    key = hashlib.sha1(repr((os.path.abspath(path), args.res, args.max_depth, args.ref_spp, args.ref_integrator,
+                             mi.__version__, mi.variant())).encode()).hexdigest()[:16]
+    cached = os.path.join(args.cache_dir, f'media-ref-{key}.npy')
+    if os.path.exists(cached):
+        return np.load(cached)
+    scene, integ = load(path, args.res, args.max_depth, integrator(args.ref_integrator, args.max_depth))
+    acc, done = 0.0, 0
+    while done < args.ref_spp:
+        k = min(64, args.ref_spp - done)
+        acc = acc + np.array(mi.render(scene, integrator=integ, spp=k, seed=10_000 + done), np.float64)[:, :, :3] * k
+        done += k
+    ref = acc / done
+    os.makedirs(args.cache_dir, exist_ok=True)
+    np.save(cached, ref)
+    return ref
+
+
+def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
+    """[(seconds, spp, relMSE)] of the running mean of batches at each checkpoint of ``budget``."""
+    acc, spp, b, out = 0.0, 0, 0, []
+    t0 = time.perf_counter()
+    for frac in CHECKPOINTS:
+        while time.perf_counter() - t0 < frac * budget:
+            img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0 + b)
+            acc = acc + np.array(img, np.float64)[:, :, :3] * batch_spp
+            spp += batch_spp
+            b += 1
+        out.append((time.perf_counter() - t0, spp, relmse(acc / max(spp, 1), ref, mask)))
+    return out
+
+
+def measure(path, name, ref, args, mask=None):
+    """Median (seconds, spp, relMSE) per checkpoint over --repeats runs, or the refusal's text."""
+    scene, integ = load(path, args.res, args.max_depth, integrator(name, args.max_depth))
+    try:
+        mi.render(scene, integrator=integ, spp=1, seed=999)          # warm-up: compiles the kernels
+    except Exception as e:
+        why = refusal(e)
+        if why is None:
+            raise
+        return why
+    runs = [curve(scene, integ, ref, args.budget, args.batch_spp, 1000 * (r + 1), mask) for r in range(args.repeats)]
+    return [tuple(float(np.median([run[i][j] for run in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
+
+
+def table(key, rows):
+    """Print one scene's table: time, spp, relMSE and the ratio to volpath's at the same checkpoint."""
+    base = rows.get('volpath')
+    base = base if isinstance(base, list) else None
+    print(f'\n## {key}\n')
+    print('| integrator | time s | spp | relMSE (median) | relMSE / volpath at equal time |')
+    print('|---|---|---|---|---|')
+    for name, r in rows.items():
+        if isinstance(r, str):
+            print(f'| {name} | - | - | - | not run: {r} |')
+            continue
+        for i, (secs, spp, err) in enumerate(r):
+            ratio = f'{err / base[i][2]:.3g}' if base and base[i][2] > 0 else '-'
+            print(f'| {name} | {secs:.1f} | {spp:.0f} | {err:.4g} | {ratio} |')
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--scenes', default='caustic,fog', help=f'comma-separated: {", ".join(SCENES)}, or scene files')
+    ap.add_argument('--integrators', default='volpath,volpathmis,bdpt')
+    ap.add_argument('--res', type=int, default=32)
+    ap.add_argument('--max-depth', type=int, default=8)
+    ap.add_argument('--budget', type=float, default=16.0, help='seconds per run')
+    ap.add_argument('--batch-spp', type=int, default=16,
+                    help='samples per render call (bdpt has a fixed cost per call: ~0.05 s at 32x32)')
+    ap.add_argument('--repeats', type=int, default=3, help='runs per integrator (seeds of their own); medians')
+    ap.add_argument('--ref-spp', type=int, default=8192)
+    ap.add_argument('--ref-integrator', default='volpathmis')
+    ap.add_argument('--region', default='all', choices=('all', 'no-delta'),
+                    help='pixels measured: all, or those not seeing glass (tests/media_scenes.media_lt_mask)')
+    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--cache-dir', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'cache'))
+    args = ap.parse_args()
+    mi.set_variant(args.variant)
+    mi.set_log_level(mi.LogLevel.Error)
+    import bdpt_jit  # noqa: F401  (registers bdpt)
+    print(f'# media equal time: {args.res}x{args.res}, max_depth {args.max_depth}, budget {args.budget} s, '
+          f'{args.repeats} repeats, reference {args.ref_integrator} {args.ref_spp} spp, {mi.variant()}, '
+          f'{os.cpu_count()} cores')
+    for key in args.scenes.split(','):
+        path = SCENES.get(key, key)
+        t0 = time.perf_counter()
+        ref = reference(path, args)
+        mask = region(path, args)
+        share = 1.0 if mask is None else mask.mean()
+        print(f'# {key}: {path}, reference in {time.perf_counter() - t0:.0f} s (0 if cached), '
+              f'region {args.region} ({share:.0%} of the pixels)')
+        table(key, {name: measure(path, name, ref, args, mask) for name in args.integrators.split(',')})
+
+
+if __name__ == '__main__':
+    main()
