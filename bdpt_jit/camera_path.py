@@ -228,10 +228,15 @@ class CameraTracer:
         c = self.ctx
         n, max_edges = self.ps.n, c.max_depth_edges
         film_pos, ray, beta = self.primary()
+        beta_start = None
         if c.media is None:
             si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
             p = si.p
         else:       # distance sampling from the camera's medium (media_path.MediumHit)
+            # (the roulette's reference before the step: a collision's weight holds 1 / sigma_t, a
+            # length, which the scatter's sigma_s takes back out; as a reference it would make
+            # the survival probability depend on the scene's scale)
+            beta_start = dr.max(beta)
             si, beta, pdf_fwd_l, pdf_rev_l = media_path.sample_step(
                 c, self.ps.sampler, ray, medium_at_sensor(c.sensor, n), media_path.surface_start(n), beta,
                 dr.full(mi.Bool, True, n))
@@ -251,7 +256,8 @@ class CameraTracer:
         st = self.mis.camera_start(c.camera.pdf_w(ray.d), dist2_cam, cos_hit)
         if c.media is not None:
             st = self.mis.distance(st, pdf_fwd_l, pdf_rev_l)
-        sub = Subpath(beta, dr.max(beta), st, mi.UInt32(1), si.is_valid() & (max_edges >= 1))
+        sub = Subpath(beta, dr.max(beta) if beta_start is None else beta_start, st, mi.UInt32(1),
+                      si.is_valid() & (max_edges >= 1))
         return film_pos, ray, si, L, alpha, aov_values, sub
 
     mode = RADIANCE

@@ -65,7 +65,9 @@ class LightTracer:
         st = self.mis.light_start(e.pdf_emit_w, e.cos_e, e.kinds.delta, pdf_direct, dist2, cos_hit)
         if c.media is not None:
             st = self.mis.distance(st, pdf_fwd_l, pdf_rev_l)
-        return si, Subpath(beta, dr.max(beta), st, dr.full(mi.UInt32, 1, self.n), active)
+        # (media: the roulette's reference before the first step, camera_path.CameraTracer.first_hit)
+        beta_start = dr.max(beta) if c.media is None else dr.max(e.beta)
+        return si, Subpath(beta, beta_start, st, dr.full(mi.UInt32, 1, self.n), active)
 
     # ------------------------------------------------------------------ strategies
     def strategy_s1_t1(self, u, e, active):

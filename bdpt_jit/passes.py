@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 UNBOUNDED = 0x3FFFFFFF          # max_depth = -1, in edges
-BYTES_PER_LIGHT_VERTEX = 144    # store.FIELDS: at most 33 words, 9 packets of 4
+BYTES_PER_LIGHT_VERTEX = 144    # store.FIELDS: at most 35 words (with media), 9 packets of 4
 BYTES_PER_SAMPLE = 1200         # camera and light loop state, film positions
 MEMORY_BUDGET = 1 << 30         # the automatic pass size's budget when the machine cannot be asked
 GIB = 1 << 30

@@ -179,8 +179,11 @@ def make_record_type(fields):
     return type(name, (VertexRecord,), {'DRJIT_STRUCT': {k: FIELDS[k] for k in FIELDS if k in fields}})
 
 
-# every field: what a scene the analysis knows nothing about gets
-StoredVertex = make_record_type(list(FIELDS))
+MEDIA_FIELDS = ('medium', 'in_medium')
+
+# every surface field: what a scene the analysis knows nothing about gets (the media fields
+# only where the scene has a medium: record_type)
+StoredVertex = make_record_type([k for k in FIELDS if k not in MEDIA_FIELDS])
 
 
 def record_type(needs, merging=False, media=False):
@@ -201,7 +204,7 @@ def record_type(needs, merging=False, media=False):
     if needs.depth:
         fields.append('depth')
     if media:
-        fields += ['medium', 'in_medium']
+        fields += list(MEDIA_FIELDS)
     return make_record_type(fields)
 
 
