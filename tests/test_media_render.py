@@ -160,6 +160,7 @@ def assert_mean_within(batches, expected, what, z=4.0, z_block=4.5):
     assert worst <= z_block or np.allclose(m, expected, rtol=1e-5), f'{what}: a 4x4 block {worst:.1f} SE off'
 
 
+@pytest.mark.slow       # (in CI: tests/test_media_agreement.py's absorbing sphere, every technique)
 @pytest.mark.parametrize('technique', ['bdpt', 'pt'])
 def test_camera_in_absorbing_sphere_sees_exp_minus_one(technique):
     scene = mi.load_dict(absorbing_sphere())
@@ -176,6 +177,7 @@ def test_light_tracing_in_absorbing_sphere_renders_nothing():
 @pytest.mark.parametrize('kind,g', [('homogeneous', 0.0), ('homogeneous', 0.7), ('heterogeneous', 0.0),
                                     ('heterogeneous', 0.7), ('homogeneous', 0.99), ('homogeneous', -0.99)])
 @pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+@pytest.mark.slow       # (in CI: tests/test_media_agreement.py's furnaces, stiff ones included)
 def test_furnace(kind, g, technique):
     scene = mi.load_dict(furnace(kind, g))
     out = render_batches(scene, bdpt(technique, -1), 32, BATCHES)
@@ -215,11 +217,14 @@ def compare(mine, ref, what, mask=None):
 # fog gives volpath's emitter sampling infinite variance, 1/d^2 next to the light: none here.
 # The thin fog, a diffuse room with rare medium vertices, at 1024 spp: at 256 bdpt's batch means
 # are skewed (a block 5 standard errors high at one seed, within 1 at three others at 1024).)
-CASES = [('fog-area', 'bdpt', 'power'), ('fog-area', 'pt', 'power'), ('fog-area', 'bdpt', 'balance'),
-         ('fog-hg', 'bdpt', 'power'), ('fog-hg', 'bdpt', 'uniform'),
-         ('glass-juice', 'bdpt', 'power'), ('glass-juice', 'pt', 'power'),
-         ('smoke-box', 'bdpt', 'power'), ('smoke-box', 'pt', 'balance'),
-         ('fog-thin', 'bdpt', 'power'), ('fog-dense', 'bdpt', 'power')]
+# (the cases marked slow have twins in tests/test_media_agreement.py's CI set: fog room, grid
+# box, glass with media)
+SLOW = pytest.mark.slow
+CASES = [pytest.param('fog-area', 'bdpt', 'power', marks=SLOW), pytest.param('fog-area', 'pt', 'power', marks=SLOW),
+         ('fog-area', 'bdpt', 'balance'), pytest.param('fog-hg', 'bdpt', 'power', marks=SLOW),
+         ('fog-hg', 'bdpt', 'uniform'), pytest.param('glass-juice', 'bdpt', 'power', marks=SLOW),
+         ('glass-juice', 'pt', 'power'), pytest.param('smoke-box', 'bdpt', 'power', marks=SLOW),
+         ('smoke-box', 'pt', 'balance'), ('fog-thin', 'bdpt', 'power'), ('fog-dense', 'bdpt', 'power')]
 
 
 @pytest.mark.parametrize('name,technique,mis', CASES)
@@ -227,7 +232,7 @@ def test_agrees_with_volpath(name, technique, mis):
     check_against_volpath(name, bdpt(technique, 6, mis), spp=1024 if name == 'fog-thin' else 256)
 
 
-@pytest.mark.parametrize('name', ['fog-small', 'fog-far'])
+@pytest.mark.parametrize('name', ['fog-small', pytest.param('fog-far', marks=SLOW)])
 def test_scaled_and_moved_scene_renders_the_same_image(name):
     """The fog room scaled by 1e-3 (sigma_t by 1e3) or moved by 1e4 renders the fog room's
     image: agreement with volpath's reference of the room itself. (Mitsuba's volpath renders
@@ -289,8 +294,8 @@ def variant_batches(tmp_path, variant, name, integ, spp, seed0=0):
 
 
 @pytest.mark.parametrize('variant,name,technique', [
-    ('llvm_ad_mono', 'glass-juice', 'bdpt'), ('llvm_ad_mono', 'smoke-box', 'pt'),
-    ('llvm_ad_spectral', 'glass-juice', 'bdpt'), ('llvm_ad_spectral', 'smoke-box', 'bdpt')])
+    ('llvm_ad_mono', 'glass-juice', 'bdpt'), pytest.param('llvm_ad_mono', 'smoke-box', 'pt', marks=SLOW),
+    pytest.param('llvm_ad_spectral', 'glass-juice', 'bdpt', marks=SLOW), ('llvm_ad_spectral', 'smoke-box', 'bdpt')])
 def test_other_variants_agree_with_volpath(tmp_path, variant, name, technique):
     """Monochrome and spectral variants: the chromatic medium in glass (per wavelength in spectral
     variants: one-sample spectral MIS over the sample's four wavelengths) and the heterogeneous grid."""
