@@ -310,7 +310,9 @@ def test_command_time_budget_keeps_whole_chunks(ray_cluster, tmp_path):
     chunks = int(h['bdpt.cluster.chunks'])
     assert chunks >= 1 and h['bdpt.spp'] == str(chunks) and h['bdpt.interrupted'] == 'false'   # 1 spp each
     assert int(h['bdpt.samples']) == chunks * PIXELS and h['bdpt.cluster.chunks_planned'] == 'endless (--time)'
-    assert float(h['bdpt.render_time_s']) <= budget + 1.0
+    # the budget is checked between chunks: one chunk (its compilation too, with an empty kernel
+    # cache: 3.7 s against a 1.5 s budget once on a fresh clone) may run past it
+    assert float(h['bdpt.render_time_s']) <= budget + float(h['bdpt.longest_pass_s']) + 1.0
     img = np.stack([f.channels()[c].pixels for c in 'RGB'], -1)
     assert np.isfinite(img).all() and img.mean() > 0
 
