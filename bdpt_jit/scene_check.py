@@ -164,6 +164,25 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
                         "light subpath starts at Mitsuba's position sample (position, normal, uv), which "
                         "carries no triangle to read a mesh attribute at (bitmap and checkerboard "
                         "radiance are supported)")
+    _check_instanced_media(scene, sensor)
+
+
+def _check_instanced_media(scene, sensor):
+    """Refuse a medium the analysis cannot see: shapes inside instanced shape groups are not in
+    ``scene.shapes()``, so a medium on one of them would be rendered as vacuum. A scene with
+    instances and a medium among its objects that no visible shape, emitter or sensor uses is
+    refused (the medium may be an instanced shape's)."""
+    if not has_instances(scene):
+        return
+    seen = {int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(m))[0]) for m in scene_media(scene, sensor)}
+    params = mi.traverse(scene)
+    for key in params.keys():
+        node = params.properties[key][2]
+        if isinstance(node, mi.Medium) and int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(node))[0]) not in seen:
+            raise UnsupportedSceneError(
+                f"bdpt: the medium {describe_medium(node)} is not on any shape bdpt can see: media on shapes "
+                "inside instanced shape groups are not supported (bdpt would render them as vacuum); put the "
+                "medium's shape outside the shape group", alternative='volpath')
 
 
 def has_instances(scene: mi.Scene) -> bool:

@@ -332,3 +332,16 @@ def _chain(e):
     while e is not None:
         yield e
         e = e.__cause__ or e.__context__
+
+
+def test_medium_inside_an_instance_is_refused_naming_it():
+    """Shapes inside instanced shape groups are not in scene.shapes(): a medium on one would be
+    rendered as vacuum, so the scene is refused naming the medium."""
+    from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
+    scene = mi.load_dict({'type': 'scene', 'fog': {'type': 'homogeneous', 'id': 'fog', 'sigma_t': 1.0},
+                          'grp': {'type': 'shapegroup', 'id': 'grp',
+                                  'sph': {'type': 'sphere', 'bsdf': {'type': 'null'}, 'interior': {'type': 'ref', 'id': 'fog'}}},
+                          'inst': {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'grp'}},
+                          'em': {'type': 'constant'}, 'sensor': sensor([0, 0, 3], [0, 0, 0])})
+    with pytest.raises(UnsupportedSceneError, match=r"the medium 'fog' \(homogeneous\) is not on any shape bdpt can see"):
+        check_scene(scene, scene.sensors()[0])
