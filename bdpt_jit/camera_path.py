@@ -177,8 +177,11 @@ class CameraTracer:
         pdf_light_to_cam_a = pdf_w_to_a(pdf_l_w, _cos(v, d), dist2)
         if e is not None:   # media: each end sampled across the edge has its distance density
             pdf_cam_to_light_a, pdf_light_to_cam_a = pdf_cam_to_light_a * e.pdf_l_far, pdf_light_to_cam_a * e.pdf_l_near
+        merge_y = None
+        if e is not None and self.mis.merge_everywhere:     # media: no merge at a medium vertex y
+            merge_y = ~y.in_medium
         w = self.mis.weight_connect(rec, sub.mis, pdf_cam_to_light_a, pdf_light_to_cam_a,
-                                    pdf_l_rev_w, pdf_c_rev_w, merge_z)
+                                    pdf_l_rev_w, pdf_c_rev_w, merge_z, merge_y)
         self.add_layer(v_depth + 1, sub.depth + 1, contrib, w, ok)
         return dr.select(ok, contrib * w, 0.0)
 
@@ -293,6 +296,8 @@ class CameraTracer:
         sub.active = sub.active & (sub.depth + 1 <= c.max_depth_edges)     # every strategy below adds an edge
         smooth = sub.active & v.smooth(c.diffuse)
         merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
+        if c.media is not None and mis.mis_merges:       # merges on surfaces only
+            merge_here = ~v.in_medium if merge_here is True else merge_here & ~v.in_medium
         if c.strategies.trace_s1:
             L = L + self.strategy_s1(v, sub, smooth, merge_here)
         if c.strategies.trace_connect and ps.cache is not None:

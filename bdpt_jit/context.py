@@ -137,10 +137,10 @@ class Context:
         from .media import MediumTracer
         from .media_path import EmitterMedia
         first = describe_medium(scene_media(scene, sensor)[0])
-        if technique in ('vcm', 'vm'):
+        if technique == 'vm':
             raise ParameterError(
-                f"bdpt: technique '{technique}' (vertex merging) is not available with participating media "
-                f"yet (the scene has the medium {first}): use technique 'bdpt', 'pt' or 'lt'")
+                f"bdpt: technique 'vm' (progressive photon mapping) is not available with participating "
+                f"media yet (the scene has the medium {first}): use technique 'vcm', 'bdpt', 'pt' or 'lt'")
         if self.ad:
             raise UnsupportedSceneError(
                 f"bdpt: gradients with participating media are not available yet (the scene has the medium "

@@ -176,6 +176,8 @@ class Merger:
         ok &= dr.squared_norm(mi.Point3f(first.x, first.y, first.z) - si.p) <= radius2
         rec = record.load(st.v, slot, ok)
         ok &= rec.depth_at(level) + sub.depth <= c.max_depth_edges
+        if 'in_medium' in record.DRJIT_STRUCT:
+            ok &= rec.in_medium == 0                # merges on surfaces only (media)
         y = rec.interaction(c.time, si.wavelengths)
         wl = y.to_world(y.wi)                       # towards the light subpath's previous vertex
         f, pdf_dir_w, pdf_rev_w, _ = v.eval(c, wl, RADIANCE, ok)

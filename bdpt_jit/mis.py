@@ -30,7 +30,8 @@ medium vertex, T at a surface), and no cosine at a medium vertex (cos = 1). The 
 enter the running quantities through ``distance``; the strategies pass every density of a
 vertex sampled across their own edge with its ``pdf_l`` already in it (pdf_a = pdf_w |cos| /
 d^2 * pdf_l, eq. 9 with distance sampling), so the weights below read the same with and
-without media. Merging is not offered with media (context.py).
+without media. Merges are made on surfaces only: no merge at a medium vertex on either side
+(``merge_here`` False there; ``merge_y`` of weight_connect and weight_t1).
 
 Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
@@ -307,7 +308,10 @@ class MIS:
         d_vcm = st.d_vcm * inv_fwd                          # [eq. 9, 22] vc_i: p->_i with its distance density
         d_vc = st.d_vc * ratio                              # [eq. 21, 22] p<-_{i-1} / p->_i with theirs
         d_vm = st.d_vm * ratio if self.mis_merges else st.d_vm      # [VCM (36)] as d_vc
-        return MISState(d_vcm, d_vc, d_vm, st.pend_vc, st.pend_vm)
+        pend_vc, pend_vm = st.pend_vc, st.pend_vm
+        if self.pending:            # [VCM (35), (36)] a deferred merge term, scaled as d_vc since
+            pend_vc, pend_vm = pend_vc * ratio, pend_vm * ratio
+        return MISState(d_vcm, d_vc, d_vm, pend_vc, pend_vm)
 
     def scatter(self, st, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here=True):
         """The vertex scattered towards a direction of density ``pdf_fwd_w`` (arguments as
@@ -315,10 +319,14 @@ class MIS:
         terms where merges exist behind delta vertices only)."""
         d_vcm, d_vc, d_vm, pend_vc, pend_vm = st.d_vcm, st.d_vc, st.d_vm, st.pend_vc, st.pend_vm
         if not camera_side:
-            merge_here = not self.pending
+            # light side: ``merge_here`` says whether a merge at this vertex can be a strategy at
+            # all (False at a medium vertex: merges are on surfaces only); where merges exist
+            # behind delta vertices only, its term waits for the next vertex (pending)
+            mergeable = merge_here
+            merge_here = False if self.pending else mergeable
             if self.pending:
                 d_vc, d_vm = self.absorb_pending(d_vc, d_vm, pend_vc, pend_vm, is_delta)
-                pend_vc, pend_vm = self.pending_after_scatter(cos_out, pdf_fwd_w, is_delta)
+                pend_vc, pend_vm = self.pending_after_scatter(cos_out, pdf_fwd_w, is_delta, mergeable)
         if self.mis_merges:
             d_vm = self.vm_on_scatter(d_vm, d_vcm, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, merge_here)
         d_vcm, d_vc = self.on_scatter(d_vcm, d_vc, cos_out, pdf_fwd_w, pdf_rev_w, is_delta,
@@ -352,7 +360,7 @@ class MIS:
         weights have no merges (vm_factor 0) and for ``vm`` (its own rule: strategies.py)."""
         return True if (self.merge_everywhere or not self.mis_merges) else prev_delta
 
-    def pending_after_scatter(self, cos_out, pdf_fwd_w, is_delta):
+    def pending_after_scatter(self, cos_out, pdf_fwd_w, is_delta, mergeable=True):
         """Light side (merges behind delta vertices only): the terms that a merge at the vertex
         just scattered from adds to (d_vc, d_vm) [VCM (35), (36)], kept apart until the next vertex
         shows whether it is delta (0 where this one is delta: no merge there)."""
@@ -360,6 +368,8 @@ class MIS:
         g = self.h(cos_out * inv_fwd)
         pend_vc = g * self.vm_factor                        # [VCM (35)] the merge at this vertex in d_vc
         pend_vm = g                                         # [VCM (36)] and in d_vm
+        if mergeable is not True:                           # no merge at a medium vertex
+            pend_vc, pend_vm = _gate(pend_vc, mergeable), _gate(pend_vm, mergeable)
         if is_delta is None:
             return pend_vc, pend_vm
         return dr.select(is_delta, 0.0, pend_vc), dr.select(is_delta, 0.0, pend_vm)
@@ -410,7 +420,7 @@ class MIS:
         return _finite(1.0 / (w_light + 1.0 + w_camera))    # [eq. 20]
 
     def weight_connect(self, light, cam, pdf_cam_to_light_a, pdf_light_to_cam_a, pdf_light_rev_w, pdf_cam_rev_w,
-                       merge_z=True):
+                       merge_z=True, merge_y=None):
         """Connection of light vertex y_{s-1} and camera vertex z_{t-1} (s,t>=2): ``light``,
         ``cam`` their MIS quantities (a MISState, or a stored record: d_vcm, d_vc).
         ``pdf_cam_to_light_a``: z's BSDF density of y (per unit area at y);
@@ -418,10 +428,11 @@ class MIS:
         ``pdf_light_rev_w``: y's density of its incoming direction given the direction to z;
         ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y;
         ``merge_z``: whether a merge at z is a strategy (merge_here_camera). A merge at y is one
-        only where merges are everywhere (y's camera-side neighbour is z, not delta)."""
+        only where merges are everywhere (y's camera-side neighbour is z, not delta), and y is on a
+        surface (``merge_y``: a mask where y may be a medium vertex; None: merge_everywhere)."""
         if not self.s.connections:
             return 0.0 * light.d_vcm
-        merge_y = self.merge_everywhere
+        merge_y = self.merge_everywhere if merge_y is None else merge_y
         w_light = self.h(pdf_cam_to_light_a) * (_gate(self.vm_factor, merge_y) + light.d_vcm
                                                 + light.d_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
         w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + cam.d_vcm
@@ -430,14 +441,15 @@ class MIS:
             return _finite(1.0 / ((w_light + w_camera) / self._count('n_c') + 1.0))      # [Veach 9.2.2] / h(n_c)
         return _finite(1.0 / (w_light + 1.0 + w_camera))                                  # [eq. 20]
 
-    def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w):
+    def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w, merge_y=None):
         """Light vertex y_{s-1} (s>=2) connected to the camera (t=1). ``pdf_cam_a``: density of
-        the camera sampling y (We converted to area at y)."""
+        the camera sampling y (We converted to area at y); ``merge_y`` as weight_connect's."""
         if not self.s.splats:
             return 0.0 * l_vcm
         if not (self.s.hits or self.s.direct or self.s.connections):
             return 1.0 + 0.0 * l_vcm                        # light tracing alone (lt)
-        merge_y = self.merge_everywhere            # y's camera-side neighbour: the camera, not delta
+        if merge_y is None:
+            merge_y = self.merge_everywhere        # y's camera-side neighbour: the camera, not delta
         w_light = self.h(pdf_cam_a) * (_gate(self.vm_factor, merge_y) + l_vcm
                                        + l_vc * self.h(pdf_light_rev_w))            # [eq. 21, 22], [VCM (46)]
         if self.n_lt is not None:

@@ -552,57 +552,6 @@ def furnace_lt_expected(inside=False, sigma_t=1.0, radius=1.0, res=16, n=8):
     return pixel_quadrature(sc, radiance, n), off_silhouette(sc, (0, 0, 0), radius)
 
 
-REFUSALS = ('participating media are not supported',          # bdpt before media were wired
-            'not available with participating media')          # a technique refused with media
-
-_PROBE = r"""
-import json, sys
-sys.path[:0] = sys.argv[1:3]
-import mitsuba as mi
-mi.set_variant(sys.argv[3])
-mi.set_log_level(mi.LogLevel.Error)
-import bdpt_jit
-import media_scenes as ms
-print(json.dumps({t: ms.refusal_in_process(t) for t in sys.argv[4].split(',')}))
-"""
-
-
-def refusal_in_process(technique='bdpt'):
-    """The message with which ``bdpt`` with ``technique`` refuses a scene with a medium, or None
-    where it renders one (a 2x2 render of a null sphere of fog under a constant emitter). Any
-    other error is raised: only a refusal (REFUSALS) may skip the tests that need media."""
-    sc = mi.load_dict(scene(
-        sensor=_camera(2, [0, 0, 3], [0, 0, 0], 30.0), medium=homogeneous(1.0, 0.5),
-        sphere=null_sphere(1.0), sky=constant_sky(1.0)))
-    try:
-        mi.render(sc, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 2, 'technique': technique}), spp=1)
-    except Exception as e:      # the refusal arrives wrapped in drjit.custom's RuntimeError
-        x = e
-        while x is not None:
-            if any(r in str(x) for r in REFUSALS):
-                return str(x)
-            x = x.__cause__ or x.__context__
-        raise
-    return None
-
-
-def media_refusals(techniques=('bdpt', 'pt', 'lt', 'vcm')):
-    """{technique: refusal message or None} (refusal_in_process), probed in a subprocess in the
-    current variant: a render that raises part-way has left this process's later renders
-    aborting in LLVM ("invalid redefinition of function", seen with vcm refused under pytest),
-    so no test process renders a refusal itself."""
-    import json
-    import subprocess
-    import sys
-    here = os.path.dirname(os.path.abspath(__file__))
-    import bdpt_jit
-    root = os.path.dirname(os.path.dirname(os.path.abspath(bdpt_jit.__file__)))
-    r = subprocess.run([sys.executable, '-c', _PROBE, here, root, mi.variant(), ','.join(techniques)],
-                       capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return json.loads(r.stdout.strip().splitlines()[-1])
-
-
 def strategy_batches(scene_obj, integrator, spp, batches, seed0=0):
     """(images (K, H, W, 3), {layer: {'weighted': (K, H, W, 3), 'unweighted': ...}}) of
     ``batches`` renders of bdpt with ``strategy_images`` (integrator.strategy_images per render)."""

@@ -219,8 +219,9 @@ ERROR_CASES = {
     'merging with a medium': (SCENE_HEAD + '    <emitter type="constant"/>\n    <shape type="sphere"><bsdf type="null"/>'
                               '<medium type="homogeneous" name="interior"><rgb name="sigma_t" value="1"/></medium>'
                               '</shape>\n</scene>\n', ['--technique', 'vm'],
-                              r"technique 'vm' \(vertex merging\) is not available with participating media yet "
-                              r"\(the scene has the medium 'homogeneous'\): use technique 'bdpt', 'pt' or 'lt'$"),
+                              r"technique 'vm' \(progressive photon mapping\) is not available with participating "
+                              r"media yet \(the scene has the medium 'homogeneous'\): use technique 'vcm', 'bdpt', 'pt' "
+                              r"or 'lt'$"),
     # refused by the plugin's constructor, which Mitsuba reports as an "unknown plugin": the
     # command keeps only the plugin's own words
     'parameters that exclude each other': (None, [CORNELL, '-D', 'res=8', '--connections', '4'],

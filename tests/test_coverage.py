@@ -389,9 +389,9 @@ def test_merging_with_media_refused_naming_the_medium(where):
     scene = mi.load_dict(d)
     check_scene(scene, scene.sensors()[0])          # media are rendered (tests/test_media_render.py)
     with pytest.raises(Exception) as info:
-        mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'vcm', 'merge_everywhere': True}), spp=1)
-    assert "technique 'vcm' (vertex merging) is not available with participating media yet (the scene has " \
-           "the medium 'fog' (homogeneous))" in cause_chain(info.value)
+        mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'vm'}), spp=1)
+    assert "technique 'vm' (progressive photon mapping) is not available with participating media yet (the " \
+           "scene has the medium 'fog' (homogeneous))" in cause_chain(info.value)
 
 
 def test_batch_sensor_refused_with_the_reason():

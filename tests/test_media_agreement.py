@@ -2,10 +2,8 @@
 furnaces, single scattering strategy by strategy) and agreement with Mitsuba's `volpath` and
 `volpathmis`, whose scenes and values tests/test_media_scenes.py checks.
 
-The whole module is skipped while bdpt refuses scenes with media (media_scenes.media_refusals
-finds that refusal's message, and nothing else, on a 2x2 render in a subprocess); it runs as soon
-as the kernels accept media, with no edit here. A technique that refuses media on its own (vcm,
-while merging in media is not built) skips its cases with its message.
+Written while bdpt refused media (skipped then); media are wired, and every technique here
+renders them (vcm merges on surfaces only: docs/media.md).
 
 Statistics (as test_agreement.py): 16 batches with fixed seeds; analytic values by
 media_scenes.assert_value (image mean within 4 standard errors; 4x4 blocks and pixels by
@@ -31,15 +29,10 @@ from helpers import agreement, render_batches
 
 K = 16
 TECHNIQUES = ['bdpt', 'pt', 'lt', 'vcm']
-REFUSED = ms.media_refusals(TECHNIQUES)         # probed in a subprocess
-pytestmark = pytest.mark.skipif(REFUSED['bdpt'] is not None, reason='media not wired yet')
 
 
 def bdpt(technique='bdpt', mis='power', max_depth=-1, **params):
-    """bdpt's integrator dict; a technique that refuses media (vcm while merging in media is
-    not built) skips the test that asks for it, with its refusal as the reason."""
-    if REFUSED[technique] is not None:
-        pytest.skip(f'{technique} with media: {REFUSED[technique]}')
+    """bdpt's integrator dict."""
     return {'type': 'bdpt', 'technique': technique, 'mis': mis, 'max_depth': max_depth, **params}
 
 

@@ -61,6 +61,7 @@ def random_paths(rng, k, delta_prob, emitter='area', media=False):
     # every edge's distance densities towards x_{i+1} (lf) and towards x_i (lb): sigma_t T per
     # unit length at a medium vertex, T at a surface, here random over four decades
     lf, lb = np.ones((M, k)), np.ones((M, k))
+    med = np.zeros((M, k + 1), bool)
     if media:
         med = rng.uniform(size=(M, k + 1)) < 0.4
         med[:, 0] = med[:, k] = False
@@ -81,7 +82,7 @@ def random_paths(rng, k, delta_prob, emitter='area', media=False):
         p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
         eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
-        emitter=emitter, media=media, lf=lf, lb=lb,
+        emitter=emitter, media=media, lf=lf, lb=lb, med=med,
     )
 
 
@@ -117,16 +118,17 @@ def merge_allowed(k, i, P, everywhere=False):
     vcm with merge_everywhere), one whose camera-side neighbour x_{i+1} is delta."""
     if not 1 <= i <= k - 1:
         return np.zeros(M, bool)
-    ok = ~P['delta'][:, i]
+    ok = ~P['delta'][:, i] & ~P['med'][:, i]               # merges on surfaces only (media)
     return ok if everywhere else ok & P['delta'][:, i + 1]
 
 
 def camera_density(P, i):
-    """The camera subpath's density of x_i per unit area (from x_{i+1}; the pinhole's from x_k)."""
+    """The camera subpath's density of x_i per unit area (from x_{i+1}; the pinhole's from x_k),
+    with the distance density of edge i (media; 1 without)."""
     k = P['k']
     if i == k - 1:
-        return P['p_cam_w'] * P['cosA'][:, k - 1] / P['d2'][:, k - 1]
-    return P['pE'][:, i + 1] * P['cosA'][:, i] / P['d2'][:, i]
+        return P['p_cam_w'] * P['cosA'][:, k - 1] / P['d2'][:, k - 1] * P['lb'][:, k - 1]
+    return P['pE'][:, i + 1] * P['cosA'][:, i] / P['d2'][:, i] * P['lb'][:, i]
 
 
 def chain_free(k, s, P):
@@ -247,13 +249,20 @@ def recursive(kind, technique, P, chains=False, counts=None):
     def distance(st, fwd, rev):              # an edge distance-sampled through media (MIS.distance)
         return mis.distance(st, F(fwd), F(rev)) if media else st
 
+    def surface(here, i):                    # media: no merge at a medium vertex x_i
+        if not media:
+            return here
+        on = B(~P['med'][:, i])
+        return on if here is True else (False if here is False else here & on)
+
     def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
         p_direct = np.zeros(M) if ek == 'dir_area' else P['p_direct_a']     # endpoints: never sampled
         st = mis.light_start(pdf_emit_w, F(cos_e0), B(np.full(M, delta)), F(p_direct), F(d2_0), F(cosB[:, 0]))
         st = distance(st, lf[:, 0], lb[:, 0])
         for i in range(1, last):
-            st = mis.scatter(st, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]), camera_side=False)
+            st = mis.scatter(st, F(cosA[:, i]), F(pL[:, i]), F(pE[:, i]), B(delta_v[:, i]), camera_side=False,
+                             merge_here=surface(True, i))
             st = distance(st, lf[:, i], lb[:, i])
             st = mis.hit(st, F(d2[:, i]), F(cosB[:, i]), camera_side=False)
         return st.d_vcm, st.d_vc, st.d_vm
@@ -262,7 +271,7 @@ def recursive(kind, technique, P, chains=False, counts=None):
         st = mis.camera_start(F(P['p_cam_w']), F(d2[:, k - 1]), F(cosA[:, k - 1]))
         st = distance(st, lb[:, k - 1], lf[:, k - 1])
         for i in range(k - 1, last, -1):
-            here = mis.merge_here_camera(B(delta_v[:, i + 1]))   # the camera (x_k) is not delta
+            here = surface(mis.merge_here_camera(B(delta_v[:, i + 1])), i)   # the camera (x_k) is not delta
             st = mis.scatter(st, F(cosB[:, i - 1]), F(pE[:, i]), F(pL[:, i]), B(delta_v[:, i]),
                              camera_side=True, merge_here=here)
             st = distance(st, lb[:, i - 1], lf[:, i - 1])
@@ -298,18 +307,19 @@ def recursive(kind, technique, P, chains=False, counts=None):
             w = mis.weight_s1(MISState(c_vcm, c_vc), F(pE[:, 1] * lb[:, 0]), F(pL[:, 1]), F(cosB[:, 0]),
                               EmitterDensities(F(pdf_direct_w), pdf_emit_w * F(lf[:, 0]), F(cos_e),
                                                B(np.full(M, delta))),
-                              merge_z=mis.merge_here_camera(B(delta_v[:, 2])))
+                              merge_z=surface(mis.merge_here_camera(B(delta_v[:, 2])), 1))
         elif t == 1:
             l_vcm, l_vc, _ = light_state(k - 1)
             w = mis.weight_t1(l_vcm, l_vc, F(P['p_cam_w'] * cosA[:, k - 1] / d2[:, k - 1] * lb[:, k - 1]),
-                              F(pE[:, k - 1]))
+                              F(pE[:, k - 1]), merge_y=surface(everywhere, k - 1) if media else None)
         else:
             l_vcm, l_vc, _ = light_state(s - 1)
             c_vcm, c_vc, _ = camera_state(s)
             w = mis.weight_connect(MISState(l_vcm, l_vc), MISState(c_vcm, c_vc),
                                    F(pE[:, s] * cosA[:, s - 1] / d2[:, s - 1] * lb[:, s - 1]),
                                    F(pL[:, s - 1] * cosB[:, s - 1] / d2[:, s - 1] * lf[:, s - 1]),
-                                   F(pE[:, s - 1]), F(pL[:, s]), merge_z=mis.merge_here_camera(B(delta_v[:, s + 1])))
+                                   F(pE[:, s - 1]), F(pL[:, s]), merge_z=surface(mis.merge_here_camera(B(delta_v[:, s + 1])), s),
+                                   merge_y=surface(everywhere, s - 1) if media else None)
         w = np.array(w if isinstance(w, mi.Float) else mi.Float(w), dtype=np.float64)
         w = np.broadcast_to(w, (M,)) if w.size == 1 else w
         if not reachable and t == 1:
@@ -390,14 +400,14 @@ def test_camera_chains_partition_of_unity(k, emitter, kind):
 
 @pytest.mark.parametrize('camera', ['pinhole', 'delta'])
 @pytest.mark.parametrize('emitter', KINDS)
-@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt'])
+@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt', 'vcm', 'vcm_all'])
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', [1, 2, 3, 5, 8])
 def test_weights_partition_of_unity_with_media(k, kind, technique, emitter, camera):
     """Paths with medium vertices (cosine 1, phase-function densities) and every edge
     distance-sampled (random forward and reverse distance densities, mis.MIS.distance and the
     strategies' pdf_l): the recursive weights equal the brute force's and sum to 1 (issue 23,
-    test 3). Merging is not offered with media (context.Context.media_setup)."""
+    test 3). vcm merges on surfaces only: no merge at a medium vertex."""
     rng = np.random.default_rng(7000 + 1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=True)
     P['camera'] = camera
@@ -406,6 +416,9 @@ def test_weights_partition_of_unity_with_media(k, kind, technique, emitter, came
     w_rec = recursive(kind, technique, P)
     w_ref = brute_force(kind, technique, P)
     assert np.all(np.isfinite(w_rec))
-    any_strategy = np.array([allowed(technique, k, s, P) for s in range(k + 1)]).any(axis=0)
+    tech = 'vcm' if technique == 'vcm_all' else technique
+    any_strategy = np.array([allowed(tech, k, s, P) for s in range(k + 1)]
+                            + ([merge_allowed(k, i, P, technique == 'vcm_all') for i in range(1, k)]
+                               if tech == 'vcm' else [])).any(axis=0)
     np.testing.assert_allclose(w_rec.sum(axis=0)[any_strategy], 1.0, rtol=1e-5)
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)

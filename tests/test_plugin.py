@@ -83,7 +83,7 @@ def test_unsupported_sensor_and_merging_in_media_are_refused():
     d['small-box']['interior'] = {'type': 'homogeneous'}
     with pytest.raises(Exception) as e:
         mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt', 'technique': 'vm'}), spp=1)
-    assert "technique 'vm' (vertex merging) is not available with participating media" in error_chain(e.value)
+    assert "technique 'vm' (progressive photon mapping) is not available with participating media" in error_chain(e.value)
 
 
 def test_other_variants_are_refused():
