@@ -185,17 +185,18 @@ def test_single_scattering_pt_lt(technique):
 # infinite variance (fog_room's docstring); measured on main 5f11042, lt -1.0% (fog room) and
 # +0.7% (caustic) with single pixels failing. References at 4x bdpt's samples per batch: at equal
 # counts volpath's batch means in the fog room are skewed enough for one pixel in 768 to fail.
+_SLOW = pytest.mark.slow      # (CI time: twins of these are in the CI set here or in test_media_render.py)
 AGREE = [
     # (scene, params, max_depth, technique, mis, spp per batch, reference spp per batch)
     ('fog_room', {}, 5, 'bdpt', 'power', 64, 256),
     ('fog_room', {}, 5, 'pt', 'power', 256, 256),
-    ('fog_room', {}, 5, 'bdpt', 'balance', 64, 256),
-    ('fog_room', {'light': 'sphere', 'g': 0.5}, 5, 'bdpt', 'power', 64, 256),
+    pytest.param('fog_room', {}, 5, 'bdpt', 'balance', 64, 256, marks=_SLOW),
+    pytest.param('fog_room', {'light': 'sphere', 'g': 0.5}, 5, 'bdpt', 'power', 64, 256, marks=_SLOW),
     ('grid_box', {}, 5, 'bdpt', 'power', 64, 256),
-    ('grid_box', {}, 5, 'pt', 'power', 256, 256),
+    pytest.param('grid_box', {}, 5, 'pt', 'power', 256, 256, marks=_SLOW),
     ('grid_box', {}, 5, 'lt', 'power', 64, 256),
     ('glass_media', {}, 6, 'bdpt', 'power', 64, 256),
-    ('glass_media', {}, 6, 'pt', 'power', 256, 256),
+    pytest.param('glass_media', {}, 6, 'pt', 'power', 256, 256, marks=_SLOW),
     ('glass_media', {}, 6, 'lt', 'power', 64, 256),
     ('volumetric_caustic', {'light_radius': 0.15}, 6, 'bdpt', 'power', 64, 256),
     ('volumetric_caustic', {'light_radius': 0.15}, 6, 'vcm', 'power', 64, 256),
