@@ -231,7 +231,9 @@ CASES = [pytest.param('fog-area', 'bdpt', 'power', marks=SLOW), pytest.param('fo
 
 @pytest.mark.parametrize('name,technique,mis', CASES)
 def test_agrees_with_volpath(name, technique, mis):
-    check_against_volpath(name, bdpt(technique, 6, mis), spp=1024 if name == 'fog-thin' else 256)
+    # (pt, volpath's own estimator, at 4x the samples: its heavy tails at 256 spp left a pixel at
+    # p = 1.05e-5 against a Sidak threshold of 1.3e-5 in the fog room)
+    check_against_volpath(name, bdpt(technique, 6, mis), spp=1024 if name == 'fog-thin' or technique == 'pt' else 256)
 
 
 @pytest.mark.parametrize('name', ['fog-small', pytest.param('fog-far', marks=SLOW)])
