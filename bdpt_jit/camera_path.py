@@ -199,7 +199,8 @@ class CameraTracer:
         """Sum of the connections of camera vertex ``v`` to the light subpath of its sample."""
         c, store = self.ctx, self.ps.store
         n_light, slot_of = store.count, store.slot    # read before the loop
-        # heterogeneous media: ratio tracking on each connection draws samples (loop state)
+        # heterogeneous media: ratio tracking on each connection draws samples, so the sampler
+        # must be loop state (without this name in the loop the LLVM backend aborts)
         sampler = self.ps.sampler if c.media is not None and c.media.info.heterogeneous else None
         # stored depths grow with j (depth_j >= j + 1): beyond j_end max_depth forbids all
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(sub.depth + 1, c.max_depth_edges))

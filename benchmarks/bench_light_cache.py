@@ -56,15 +56,26 @@ def reference(args):
     if os.path.exists(path):
         return np.load(path)
     scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth))
-    acc, done = 0.0, 0
-    while done < args.ref_spp:
-        k = min(64, args.ref_spp - done)
-        acc = acc + np.array(mi.render(scene, integrator=integ, spp=k, seed=10_000 + done), np.float64)[:, :, :3] * k
-        done += k
-    ref = acc / done
+    ref = long_render(scene, integ, args.ref_spp)
     os.makedirs(args.cache_dir, exist_ok=True)
     np.save(path, ref)
     return ref
+
+
+def relmse(img, ref, mask=None):
+    """mean((I - R)^2 / (R^2 + 1e-2)) over the pixels of ``mask`` (None: all) and the channels."""
+    e = (img - ref) ** 2 / (ref ** 2 + 1e-2)
+    return float(np.mean(e if mask is None else e[mask]))
+
+
+def long_render(scene, integ, spp, seed0=10_000):
+    """The mean of ``spp`` samples rendered in calls of at most 64 (seeds from ``seed0``), RGB float64."""
+    acc, done = 0.0, 0
+    while done < spp:
+        k = min(64, spp - done)
+        acc = acc + np.array(mi.render(scene, integrator=integ, spp=k, seed=seed0 + done), np.float64)[:, :, :3] * k
+        done += k
+    return acc / done
 
 
 def equal_time(scene, integ, budget, batch_spp, seed0=0):
@@ -86,7 +97,7 @@ def measure(args, name, ref):
     rels, spps, sps = [], [], []
     for r in range(args.repeats):               # seeds of their own: 1000 r + batch
         img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
-        rels.append(float(np.mean((img - ref) ** 2 / (ref ** 2 + 1e-2))))
+        rels.append(relmse(img, ref))
         spps.append(spp)
         sps.append(spp * args.res * args.res / secs)
     info = getattr(integ, 'last_render_info', {}).get('light_cache', {})

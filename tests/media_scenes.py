@@ -212,6 +212,27 @@ def furnace(kind='homogeneous', g=0.0, inside=False, sigma_t=1.0, radius=1.0, gr
 
 FURNACE_VALUE = 1.0
 
+# the furnaces the tests render: (kind, g, inside, sigma_t, radius, grid)
+FURNACES = [
+    ('homogeneous', 0.0, False, 1.0, 1.0, 'blob'),
+    ('homogeneous', 0.0, True, 1.0, 1.0, 'blob'),
+    ('homogeneous', 0.7, False, 1.0, 1.0, 'blob'),
+    ('homogeneous', 0.7, True, 1.0, 1.0, 'blob'),
+    ('heterogeneous', 0.0, False, 1.0, 1.0, 'blob'),
+    ('heterogeneous', 0.0, True, 1.0, 1.0, 'blob'),
+    ('heterogeneous', 0.7, False, 1.0, 1.0, 'blob'),
+    ('heterogeneous', 0.7, True, 1.0, 1.0, 'blob'),
+]
+STIFF_FURNACES = [        # (h)
+    ('homogeneous', 0.99, False, 1.0, 1.0, 'blob'),
+    ('homogeneous', -0.99, False, 1.0, 1.0, 'blob'),
+    ('homogeneous', 0.0, True, 1e-4, 1e4, 'blob'),       # thin and large
+    ('homogeneous', 0.0, False, 1e-4, 1e4, 'blob'),
+    ('homogeneous', 0.0, False, 1e3, 3e-3, 'blob'),      # dense and small: optical radius 3
+    ('heterogeneous', 0.0, False, 2.0, 1.0, 'single'),
+    ('heterogeneous', 0.0, True, 2.0, 1.0, 'octants'),
+]
+
 
 # ----------------------------------------------------------------------- pixel quadrature
 def pixel_rays(scene_obj, n):

@@ -71,26 +71,7 @@ def test_absorbing_grid(technique, grid):
     ms.assert_value(b, ms.absorbing_cube_expected(grid)[..., None], f'{technique} absorbing cube {grid}')
 
 
-FURNACES = [
-    # (kind, g, inside, sigma_t, radius, grid), as test_media_scenes.FURNACES
-    ('homogeneous', 0.0, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.0, True, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.7, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.7, True, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.0, False, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.0, True, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.7, False, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.7, True, 1.0, 1.0, 'blob'),
-]
-STIFF_FURNACES = [
-    ('homogeneous', 0.99, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', -0.99, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.0, True, 1e-4, 1e4, 'blob'),
-    ('homogeneous', 0.0, False, 1e-4, 1e4, 'blob'),
-    ('homogeneous', 0.0, False, 1e3, 3e-3, 'blob'),
-    ('heterogeneous', 0.0, False, 2.0, 1.0, 'single'),
-    ('heterogeneous', 0.0, True, 2.0, 1.0, 'octants'),
-]
+FURNACES, STIFF_FURNACES = ms.FURNACES, ms.STIFF_FURNACES
 
 
 def technique_cases(techniques, rows, ci_bdpt):

@@ -84,25 +84,7 @@ def test_absorbing_cube_quadrature_converged():
     assert np.abs(a - b)[mask].max() < 1e-6 * a.max()
 
 
-FURNACES = [
-    # (kind, g, inside, sigma_t, radius, grid)
-    ('homogeneous', 0.0, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.0, True, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.7, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.7, True, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.0, False, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.0, True, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.7, False, 1.0, 1.0, 'blob'),
-    ('heterogeneous', 0.7, True, 1.0, 1.0, 'blob'),
-    # (h) stiff
-    ('homogeneous', 0.99, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', -0.99, False, 1.0, 1.0, 'blob'),
-    ('homogeneous', 0.0, True, 1e-4, 1e4, 'blob'),       # thin and large
-    ('homogeneous', 0.0, False, 1e-4, 1e4, 'blob'),
-    ('homogeneous', 0.0, False, 1e3, 3e-3, 'blob'),      # dense and small: optical radius 3
-    ('heterogeneous', 0.0, False, 2.0, 1.0, 'single'),
-    ('heterogeneous', 0.0, True, 2.0, 1.0, 'octants'),
-]
+FURNACES = ms.FURNACES + ms.STIFF_FURNACES
 
 
 @pytest.mark.parametrize('kind,g,inside,sigma_t,radius,grid', FURNACES)
