@@ -178,8 +178,8 @@ class CameraTracer:
         if e is not None:   # media: each end sampled across the edge has its distance density
             pdf_cam_to_light_a, pdf_light_to_cam_a = pdf_cam_to_light_a * e.pdf_l_far, pdf_light_to_cam_a * e.pdf_l_near
         merge_y = None
-        if e is not None and self.mis.merge_everywhere:     # media: no merge at a medium vertex y
-            merge_y = ~y.in_medium
+        if e is not None and self.mis.merge_everywhere:     # media: a merge at y, relative to a surface's
+            merge_y = self.mis.merge_factor(y.in_medium)
         w = self.mis.weight_connect(rec, sub.mis, pdf_cam_to_light_a, pdf_light_to_cam_a,
                                     pdf_l_rev_w, pdf_c_rev_w, merge_z, merge_y)
         self.add_layer(v_depth + 1, sub.depth + 1, contrib, w, ok)
@@ -297,8 +297,9 @@ class CameraTracer:
         sub.active = sub.active & (sub.depth + 1 <= c.max_depth_edges)     # every strategy below adds an edge
         smooth = sub.active & v.smooth(c.diffuse)
         merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
-        if c.media is not None and mis.mis_merges:       # merges on surfaces only
-            merge_here = ~v.in_medium if merge_here is True else merge_here & ~v.in_medium
+        merge_mask = merge_here
+        if c.media is not None and mis.mis_merges:       # media: relative to a surface merge
+            merge_here = mis.merge_factor(v.in_medium, merge_here)
         if c.strategies.trace_s1:
             L = L + self.strategy_s1(v, sub, smooth, merge_here)
         if c.strategies.trace_connect and ps.cache is not None:
@@ -306,7 +307,7 @@ class CameraTracer:
         elif c.strategies.trace_connect:
             L = L + self.connect_all(self.idx, v, sub, smooth, merge_here)
         if c.strategies.trace_merge:
-            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_here)
+            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask)
         return sub, (L, prev, prev_delta), merge_here
 
     def after_step(self, ray, si, v, sub, carry, was_delta):

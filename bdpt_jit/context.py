@@ -137,18 +137,11 @@ class Context:
         from .media import MediumTracer
         from .media_path import EmitterMedia
         first = describe_medium(scene_media(scene, sensor)[0])
-        if technique == 'vm':
-            raise ParameterError(
-                f"bdpt: technique 'vm' (progressive photon mapping) is not available with participating "
-                f"media yet (the scene has the medium {first}): use technique 'vcm', 'bdpt', 'pt' or 'lt'")
         if self.ad:
             raise UnsupportedSceneError(
                 f"bdpt: gradients with participating media are not available yet (the scene has the medium "
                 f"{first}): render it without derivatives, or differentiate with Mitsuba's prbvolpath",
                 alternative='prbvolpath')
-        if float(settings.get('light_paths', -1.0)) != -1.0:
-            raise ParameterError(f"bdpt: parameter 'light_paths' (the light vertex cache) is not available with "
-                                 f"participating media yet (the scene has the medium {first}): use light_paths -1")
         stats = MediumStats() if settings['statistics'] else None
         return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets), stats
 

@@ -204,23 +204,26 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
         # light subpaths: one per camera sample, or the cache's n_L (whole ones per iteration)
         n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None else n
-        schedule, eta = None, None
+        schedule, eta, radius = None, None, None
         if ctx.strategies.trace_merge:
             s = self.settings
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
                                      spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
-        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta))
+            if ctx.media is not None:                        # merges inside media: the ball's radius
+                radius = schedule.radius(schedule.group(dr.arange(mi.UInt32, n)))
+        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta, radius=radius))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if ctx.light_cache is not None:
-            self.cache_pass_state(ctx, ps, seed, i, n_light, eta)
+            self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))
         return ps
 
-    def cache_pass_state(self, ctx, ps, seed, i, n_light, eta):
+    def cache_pass_state(self, ctx, ps, seed, i, n_light, merging):
         """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
         their own sampler, the splats' scale 1/spp times n / n_L, the MIS counts (merges: the
-        camera samples' ``eta``, and the light subpaths' of their iterations in ``mis_light``)."""
+        camera samples' (``merging``: their eta and, with media, radius), and the light subpaths'
+        of their iterations in ``mis_light``)."""
         ps.n_light = n_light
         ps.light_sampler = ctx.sensor.sampler().clone()
         ps.light_sampler.set_sample_count(ps.spp_pass)
@@ -228,9 +231,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
         vpp, c = self.cache_run
         counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
-        ps.mis = ctx.mis.for_pass(eta, counts)
-        eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light)) if eta is not None else None
-        ps.mis_light = ctx.mis.for_pass(eta_light, counts)
+        eta, radius = merging
+        ps.mis = ctx.mis.for_pass(eta, counts, radius)
+        eta_light, radius_light = None, None
+        if eta is not None:
+            eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light))
+        if radius is not None:
+            radius_light = ps.schedule.radius(ps.schedule.group(dr.arange(mi.UInt32, n_light)))
+        ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light)
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {

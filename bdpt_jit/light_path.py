@@ -116,7 +116,7 @@ class LightTracer:
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
         else:       # media: the camera subpath reaches y with the edge's distance density there
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), v.cos(ds.d), dr.square(ds.dist)) * et.pdf_l_near
-        merge_y = ~v.in_medium if et is not None and self.mis.merge_everywhere else None   # (media: surfaces only)
+        merge_y = self.mis.merge_factor(v.in_medium) if et is not None and self.mis.merge_everywhere else None
         w = self.mis.weight_t1(sub.mis.d_vcm, sub.mis.d_vc, pdf_cam_a, pdf_rev_w, merge_y)
         value = sub.beta * f * tr * sensor_w * self.splat_scale
         if not isinstance(self.wl_weight, float):
@@ -184,7 +184,7 @@ class LightTracer:
             self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
         sub.active = sub.active & (sub.depth + 2 <= max_edges)
         if c.media is not None and self.mis.mis_merges:
-            return sub, (count,), ~v.in_medium      # merges on surfaces only (mis.MIS.scatter)
+            return sub, (count,), self.mis.merge_factor(v.in_medium)    # (mis.MIS.scatter)
         return sub, (count,), True
 
     def after_step(self, ray, si, v, sub, carry, was_delta):

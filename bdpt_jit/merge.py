@@ -176,8 +176,9 @@ class Merger:
         ok &= dr.squared_norm(mi.Point3f(first.x, first.y, first.z) - si.p) <= radius2
         rec = record.load(st.v, slot, ok)
         ok &= rec.depth_at(level) + sub.depth <= c.max_depth_edges
-        if 'in_medium' in record.DRJIT_STRUCT:
-            ok &= rec.in_medium == 0                # merges on surfaces only (media)
+        if c.media is not None:                     # a surface with a surface, a medium vertex with one of its medium
+            ok &= (rec.in_medium != 0) == v.in_medium
+            ok &= ~v.in_medium | (rec.medium == v.medium)
         y = rec.interaction(c.time, si.wavelengths)
         wl = y.to_world(y.wi)                       # towards the light subpath's previous vertex
         f, pdf_dir_w, pdf_rev_w, _ = v.eval(c, wl, RADIANCE, ok)
@@ -185,10 +186,15 @@ class Merger:
         # interpolated normals a light vertex on the neighbouring triangle reaches z's triangle
         # at grazing angles, where 1 / |cos_g| of z would explode (fireflies up to 42x the
         # median on a smooth torus); for light vertices on z's own plane the two are one
-        value = f * rec.beta * safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
+        inv_cos = safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
+        factor = None
+        if c.media is not None:     # a medium vertex: beta_y per unit volume, sigma_s p in f, no cosine
+            inv_cos = dr.select(v.in_medium, 1.0, inv_cos)
+            factor = self.mis.merge_factor(v.in_medium) if self.mis.mis_merges else None
+        value = f * rec.beta * inv_cos
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
-        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w)
+        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, factor)
         return dr.select(ok, value * w, 0.0)
 
     @dr.syntax
@@ -202,6 +208,8 @@ class Merger:
         r = sched.radius(group)
         radius2 = r * r
         norm = 1.0 / (dr.pi * radius2 * sched.paths_f)
+        if self.ctx.media is not None:      # inside media: the ball, 4/3 pi r^3 N
+            norm = dr.select(v.in_medium, norm * (0.75 / r), norm)
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))

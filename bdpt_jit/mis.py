@@ -30,8 +30,11 @@ medium vertex, T at a surface), and no cosine at a medium vertex (cos = 1). The 
 enter the running quantities through ``distance``; the strategies pass every density of a
 vertex sampled across their own edge with its ``pdf_l`` already in it (pdf_a = pdf_w |cos| /
 d^2 * pdf_l, eq. 9 with distance sampling), so the weights below read the same with and
-without media. Merges are made on surfaces only: no merge at a medium vertex on either side
-(``merge_here`` False there; ``merge_y`` of weight_connect and weight_t1).
+without media. A merge at a medium vertex gathers the light vertices in a ball (eta_vol =
+4/3 pi r^3 N, against pi r^2 N on a surface): the running quantities stay relative to a
+surface merge, and where a merge may be made the ``merge_*`` arguments carry, in scenes with
+media, that merge's factor (``merge_factor``: 1 on a surface, h(4 r / 3) at a medium vertex,
+0 where no merge is offered) instead of a mask.
 
 Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
@@ -95,11 +98,14 @@ class MISState:
 
 
 def _gate(x, ok):
-    """x where ``ok`` (a mask, or True/False), else 0."""
+    """x where ``ok`` (a mask, or True/False), else 0; x times ``ok`` where it is a factor (a
+    merge's density relative to a surface merge: merges inside media, ``MIS.merge_factor``)."""
     if ok is True:
         return x
     if ok is False:
         return 0.0 * x
+    if isinstance(ok, mi.Float):
+        return x * ok
     return dr.select(ok, x, 0.0 * x)
 
 
@@ -144,6 +150,7 @@ class MIS:
         self.camera_chains = camera_chains
         self.vm_factor = 0.0          # h(eta): set per pass by for_pass (merges)
         self.vc_factor = 0.0          # h(1/eta)
+        self.vol_factor = None        # h(eta_vol / eta): a merge at a medium vertex (for_pass; media)
         self.mis_merges = strategies.merges and not strategies.ppm
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
         self.merge_everywhere = merge_everywhere
@@ -153,13 +160,16 @@ class MIS:
         self.n_c = None               # connections per camera vertex: c n_L / V (set_counts)
         self.n_lt = None              # light subpaths per camera sample: n_L / n (set_counts)
 
-    def for_pass(self, eta=None, counts=None):
-        """This MIS with the pass's eta = pi r^2 N (merges; None: no merges) and the light vertex
-        cache's sample counts (n_c, n_lt) (None: the classic estimator): a copy, so that
+    def for_pass(self, eta=None, counts=None, radius=None):
+        """This MIS with the pass's eta = pi r^2 N (merges; None: no merges), the light vertex
+        cache's sample counts (n_c, n_lt) (None: the classic estimator) and, in scenes with
+        media, the merging ``radius`` r (merges inside media: ``set_volume``): a copy, so that
         per-pass values travel with the pass and the Context's MIS is never written."""
         out = copy.copy(self)
         if eta is not None:
             out.set_radius(eta)
+        if radius is not None:
+            out.set_volume(radius)
         if counts is not None:
             out.set_counts(*counts)
         return out
@@ -185,6 +195,24 @@ class MIS:
         self.vm_factor = self.h(eta)                                        # [VCM (20)] n_VM = N
         has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
         self.vc_factor = self.h(1.0 / eta) if has_vc else 0.0               # [VCM (20)] n_VC = 1
+
+    def set_volume(self, radius):
+        """Merges inside media (media scenes only): a merge at a medium vertex gathers the light
+        vertices in the ball of radius r, eta_vol = 4/3 pi r^3 N against eta = pi r^2 N on a
+        surface [UPBP: Krivanek et al. 2014, point-point 3D]: its density relative to a surface
+        merge's is eta_vol / eta = 4 r / 3 (per unit length: densities at medium vertices are per
+        unit volume). The running quantities stay relative to a surface merge; a medium vertex's
+        merge enters them with this factor (``merge_factor``)."""
+        if self.mis_merges:
+            self.vol_factor = self.h(radius * (4.0 / 3.0))                  # [UPBP] eta_vol / eta
+
+    def merge_factor(self, in_medium, offered=True):
+        """A vertex's merge relative to a surface merge, for the ``merge_*`` arguments in scenes
+        with media: 0 where no merge is offered (``offered``, a mask or True), the volume
+        factor at a medium vertex, 1 on a surface."""
+        vol = self.vol_factor if self.vol_factor is not None else 0.0     # (no merges: unused)
+        f = dr.select(in_medium, vol, 1.0)
+        return f if offered is True else dr.select(offered, f, 0.0)
 
     # ------------------------------------------------------------------ heuristic
     def h(self, x):
@@ -320,8 +348,8 @@ class MIS:
         d_vcm, d_vc, d_vm, pend_vc, pend_vm = st.d_vcm, st.d_vc, st.d_vm, st.pend_vc, st.pend_vm
         if not camera_side:
             # light side: ``merge_here`` says whether a merge at this vertex can be a strategy at
-            # all (False at a medium vertex: merges are on surfaces only); where merges exist
-            # behind delta vertices only, its term waits for the next vertex (pending)
+            # all (with media: its factor, merge_factor); where merges exist behind delta
+            # vertices only, its term waits for the next vertex (pending)
             mergeable = merge_here
             merge_here = False if self.pending else mergeable
             if self.pending:
@@ -467,15 +495,18 @@ class MIS:
             return _finite(1.0 / (1.0 + self.h(pdf_cam_a / (self.n_lt * pdf_light_a))))  # [eq. 20], [Veach 9.2.2]
         return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
 
-    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w):
+    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, factor=None):
         """Merge of camera vertex z with a light vertex y within the radius (merge.py).
         ``pdf_cam_dir_w``: z's BSDF density of y's incoming direction (the camera subpath going
         on where the light subpath came from); ``pdf_cam_rev_w``: z's density of its own incoming
-        direction given y's (the light subpath going on where the camera subpath came from)."""
+        direction given y's (the light subpath going on where the camera subpath came from);
+        ``factor``: this merge's density relative to a surface merge (merge_factor; None: 1)."""
         if self.s.ppm:
             return 1.0 + 0.0 * l_vcm                        # vm: a partition, no MIS
         if not self.mis_merges:
             return 0.0 * l_vcm
         w_light = l_vcm * self.vc_factor + l_vm * self.h(pdf_cam_dir_w)    # [VCM (38)]
         w_camera = c_vcm * self.vc_factor + c_vm * self.h(pdf_cam_rev_w)   # [VCM (39)]
+        if factor is not None:      # [UPBP] the others relative to this merge: / (eta_vol / eta)
+            return _finite(1.0 / ((w_light + w_camera) * dr.select(factor > 0, 1.0 / factor, 0.0) + 1.0))
         return _finite(1.0 / (w_light + 1.0 + w_camera))                   # [VCM (37)]

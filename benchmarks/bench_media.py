@@ -39,12 +39,19 @@ CHECKPOINTS = (0.125, 0.25, 0.5, 1.0)       # fractions of the budget
 
 def integrator(name, max_depth):
     """The integrator dict of a contestant: Mitsuba's volpath or volpathmis, or bdpt with a
-    technique (bdpt, pt, lt, vcm)."""
-    if name in ('volpath', 'volpathmis'):
+    technique (bdpt, pt, lt, vcm, vm), each with bdpt parameters after a colon
+    (``vcm:radius=0.02+radius_alpha=1``)."""
+    name, _, extra = name.partition(':')
+    params = {}
+    for item in filter(None, extra.split('+')):
+        key, _, value = item.partition('=')
+        params[key] = float(value) if value.replace('.', '', 1).replace('e-', '', 1).isdigit() else value
+    if name in ('volpath', 'volpathmis') and not params:
         return {'type': name, 'max_depth': max_depth}
-    if name in ('bdpt', 'pt', 'lt', 'vcm'):
-        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': name}
-    raise ValueError(f'unknown integrator {name!r} (volpath, volpathmis, bdpt, pt, lt, vcm)')
+    if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm'):
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': name, **params}
+    raise ValueError(f'unknown integrator {name!r} (volpath, volpathmis, bdpt, pt, lt, vcm, vm; '
+                     'bdpt parameters after a colon)')
 
 
 def region(path, args):

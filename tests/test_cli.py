@@ -215,13 +215,13 @@ ERROR_CASES = {
     'strategies with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--strategies'], '--strategies'),
     'bdpt option with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--mis', 'balance'], '--mis'),
     'unknown variant': (None, [CORNELL, '-D', 'res=8', '--variant', 'nosuch_rgb'], 'nosuch_rgb'),
-    # merging is not offered with media: refused naming the technique and the medium
-    'merging with a medium': (SCENE_HEAD + '    <emitter type="constant"/>\n    <shape type="sphere"><bsdf type="null"/>'
-                              '<medium type="homogeneous" name="interior"><rgb name="sigma_t" value="1"/></medium>'
-                              '</shape>\n</scene>\n', ['--technique', 'vm'],
-                              r"technique 'vm' \(progressive photon mapping\) is not available with participating "
-                              r"media yet \(the scene has the medium 'homogeneous'\): use technique 'vcm', 'bdpt', 'pt' "
-                              r"or 'lt'$"),
+    # a medium bdpt cannot see (on a shape inside an instanced shape group): refused naming it
+    'medium inside an instance': (SCENE_HEAD + '    <emitter type="constant"/>\n'
+                                  '    <medium type="homogeneous" id="fog"/>\n'
+                                  '    <shape type="shapegroup" id="grp"><shape type="sphere"><bsdf type="null"/>'
+                                  '<ref name="interior" id="fog"/></shape></shape>\n'
+                                  '    <shape type="instance"><ref id="grp"/></shape>\n</scene>\n', [],
+                                  r"the medium 'fog' \(homogeneous\) is not on any shape bdpt can see"),
     # refused by the plugin's constructor, which Mitsuba reports as an "unknown plugin": the
     # command keeps only the plugin's own words
     'parameters that exclude each other': (None, [CORNELL, '-D', 'res=8', '--connections', '4'],

@@ -8,8 +8,7 @@ Mitsuba's own integrators, and the plugins it refuses, each with a message that 
 - sunsky (an infinite emitter) through a window; projector (delta position, textured frustum);
   directionalarea (a surface emitting along its normal: only light subpaths reach its light, so
   the reference is ptracer, and `path`, like technique pt, renders it black);
-- refusals: the aov integrator wrapping bdpt, participating media (the message names the
-  medium), textured emitters on meshes and cylinders, timed_sunsky, batch;
+- refusals: the aov integrator wrapping bdpt, textured emitters on meshes and cylinders, timed_sunsky, batch;
 - docs/coverage.md lists every plugin Mitsuba ships.
 
 Agreement as in test_lights.py: K batches, Welch per pixel and per 4x4 block (helpers.agreement);
@@ -375,23 +374,6 @@ def test_aov_wrapper_refused_with_a_clear_message():
     aovs = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'aov', 'aovs': 'dd:depth,nn:sh_normal'}), spp=4))
     image = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt'}), spp=4))
     assert aovs.shape[:2] == image.shape[:2] and aovs.shape[2] == 4 and aovs[..., 0].max() > 3
-
-
-@pytest.mark.parametrize('where', ['shape', 'sensor'])
-def test_merging_with_media_refused_naming_the_medium(where):
-    d = cornell(8)
-    d['fog'] = {'type': 'homogeneous', 'id': 'fog', 'sigma_t': 0.5}
-    if where == 'shape':
-        d['tank'] = {'type': 'cube', 'to_world': T().scale(0.3), 'bsdf': {'type': 'null'},
-                     'interior': {'type': 'ref', 'id': 'fog'}}
-    else:
-        d['sensor']['medium'] = {'type': 'ref', 'id': 'fog'}
-    scene = mi.load_dict(d)
-    check_scene(scene, scene.sensors()[0])          # media are rendered (tests/test_media_render.py)
-    with pytest.raises(Exception) as info:
-        mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'technique': 'vm'}), spp=1)
-    assert "technique 'vm' (progressive photon mapping) is not available with participating media yet (the " \
-           "scene has the medium 'fog' (homogeneous))" in cause_chain(info.value)
 
 
 def test_batch_sensor_refused_with_the_reason():

@@ -82,6 +82,7 @@ def random_paths(rng, k, delta_prob, emitter='area', media=False):
         p_cam_w=10.0 ** rng.uniform(-1, 2, size=M),        # We of the direction x_k -> x_{k-1}
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
         eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
+        radius=10.0 ** rng.uniform(-3, 1, size=M),         # r (media: a merge at a medium vertex has 4/3 pi r^3 N)
         emitter=emitter, media=media, lf=lf, lb=lb, med=med,
     )
 
@@ -118,8 +119,13 @@ def merge_allowed(k, i, P, everywhere=False):
     vcm with merge_everywhere), one whose camera-side neighbour x_{i+1} is delta."""
     if not 1 <= i <= k - 1:
         return np.zeros(M, bool)
-    ok = ~P['delta'][:, i] & ~P['med'][:, i]               # merges on surfaces only (media)
+    ok = ~P['delta'][:, i]                                 # (medium vertices: never delta)
     return ok if everywhere else ok & P['delta'][:, i + 1]
+
+
+def merge_volume(P, i):
+    """A merge at x_i relative to a surface merge: eta_vol / eta = 4 r / 3 at a medium vertex."""
+    return np.where(P['med'][:, i], 4.0 * P['radius'] / 3.0, 1.0)
 
 
 def camera_density(P, i):
@@ -195,7 +201,8 @@ def brute_force(kind, technique, P, p_lens=None, chains=False, counts=None):
         ok = allowed(technique, k, s, P) & (chain_free(k, s, P) if chains else True)
         dens.append(np.where(ok, p, 0.0))
     if technique == 'vcm':
-        dens += [np.where(merge_allowed(k, i, P, everywhere), raw[i + 1] * camera_density(P, i) * P['eta'], 0.0)
+        dens += [np.where(merge_allowed(k, i, P, everywhere),
+                          raw[i + 1] * camera_density(P, i) * P['eta'] * merge_volume(P, i), 0.0)
                  for i in range(1, k)]
     dens = np.array(dens)
     if kind == 'uniform':
@@ -238,6 +245,8 @@ def recursive(kind, technique, P, chains=False, counts=None):
     cos_e0 = np.ones(M) if infinite or ek == 'delta_pos' else cosA[:, 0]
 
     mis.set_radius(F(P['eta']))
+    if P.get('media', False):
+        mis.set_volume(F(P['radius']))
     if counts is not None:
         mis.set_counts(F(counts[0]), F(counts[1]))
 
@@ -249,11 +258,10 @@ def recursive(kind, technique, P, chains=False, counts=None):
     def distance(st, fwd, rev):              # an edge distance-sampled through media (MIS.distance)
         return mis.distance(st, F(fwd), F(rev)) if media else st
 
-    def surface(here, i):                    # media: no merge at a medium vertex x_i
-        if not media:
+    def surface(here, i):                    # media: a merge at x_i relative to a surface merge
+        if not media or here is False:
             return here
-        on = B(~P['med'][:, i])
-        return on if here is True else (False if here is False else here & on)
+        return mis.merge_factor(B(P['med'][:, i]), here)
 
     def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
@@ -330,7 +338,9 @@ def recursive(kind, technique, P, chains=False, counts=None):
         for i in range(1, k):                                # merging at x_i
             l_vcm, _, l_vm = light_state(i)
             c_vcm, _, c_vm = camera_state(i)
-            w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i])), dtype=np.float64)
+            factor = mis.merge_factor(B(P['med'][:, i])) if media else None
+            w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i]), factor),
+                         dtype=np.float64)
             out.append(np.where(merge_allowed(k, i, P, everywhere), w, 0.0))
     return np.array(out)
 
@@ -407,7 +417,7 @@ def test_weights_partition_of_unity_with_media(k, kind, technique, emitter, came
     """Paths with medium vertices (cosine 1, phase-function densities) and every edge
     distance-sampled (random forward and reverse distance densities, mis.MIS.distance and the
     strategies' pdf_l): the recursive weights equal the brute force's and sum to 1 (issue 23,
-    test 3). vcm merges on surfaces only: no merge at a medium vertex."""
+    test 3). vcm merges inside media too, in a ball (4/3 pi r^3 N: mis.MIS.set_volume)."""
     rng = np.random.default_rng(7000 + 1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=True)
     P['camera'] = camera

@@ -70,7 +70,7 @@ def test_unsupported_emitters_are_refused_by_name(emitter, name):
     assert f"UnsupportedSceneError: bdpt: emitter plugin '{name}' is not supported" in msgs
 
 
-def test_unsupported_sensor_and_merging_in_media_are_refused():
+def test_unsupported_sensor_is_refused():
     d = mi.cornell_box()
     sensor = d.pop('sensor')
     sensor['film'].update(width=8, height=8)
@@ -78,12 +78,6 @@ def test_unsupported_sensor_and_merging_in_media_are_refused():
     with pytest.raises(Exception) as e:
         mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt'}), spp=1)
     assert "sensor plugin 'batch' is not supported" in error_chain(e.value)
-    d = mi.cornell_box()
-    d['sensor']['film'].update(width=8, height=8)
-    d['small-box']['interior'] = {'type': 'homogeneous'}
-    with pytest.raises(Exception) as e:
-        mi.render(mi.load_dict(d), integrator=mi.load_dict({'type': 'bdpt', 'technique': 'vm'}), spp=1)
-    assert "technique 'vm' (progressive photon mapping) is not available with participating media" in error_chain(e.value)
 
 
 def test_other_variants_are_refused():
