@@ -153,8 +153,11 @@ def scene_name(builder, phase):
     return name
 
 
-@pytest.mark.parametrize('phase', RENDERED)
+@pytest.mark.parametrize('phase', [pytest.param(p, marks=pytest.mark.slow) if p in ('rayleigh', 'blendphase') else p
+                                   for p in RENDERED])
 def test_fog_room_agrees_with_volpath(phase):
+    """(rayleigh and blendphase in the slow set, for CI time: a wrong value or reverse density of
+    theirs fails test_vertex_densities, and their furnaces stay)"""
     check_against_volpath(scene_name(fog_room, phase), bdpt('bdpt', 6, 'power'))
 
 
