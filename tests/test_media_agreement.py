@@ -204,7 +204,23 @@ def test_agrees_with_volpath(name, params, max_depth, technique, mis, spp, ref_s
 
 
 CAMERA_IN_MEDIUM = ('fog_room', 'volumetric_caustic')
-FULL = [(n, p, d, t, m, 128, 512)
+
+
+def _full_counts(name, params, technique, mis):
+    """(spp, ref_spp) of a full-matrix case. Heavy tails at 16 x 128 or 16 x 512 made 6 cases
+    fail (docs/media-scenes.md, "The slow full matrix"), each agreeing at 8-32x the samples: lt's
+    splats through HG 0.9 towards the camera (lt 0.15630 +- 0.00026 against volpath's 0.15621 at
+    16 x 4096; glass_media's lt at 16 x 2048 still left one pixel at p 1.4e-5 for 2.5e-5),
+    uniform weights (pt, lt), and volpath's own caustic seen through the glass (one
+    pixel 11% low at 16 x 512; bdpt and pt at 16 x 2048 and 16 x 8192 agree with each other)."""
+    spp = 4096 if technique == 'lt' else 2048 if mis == 'uniform' else 128
+    ref_spp = 4096 if (technique == 'pt' and mis == 'uniform') else 512
+    if name == 'volumetric_caustic' and params.get('glass', True):
+        ref_spp = 4096
+    return spp, ref_spp
+
+
+FULL = [(n, p, d, t, m) + _full_counts(n, p, t, m)
         for n, p, d in (('fog_room', {}, 8), ('fog_room', {'light': 'sphere', 'g': -0.5}, 3),
                         ('grid_box', {'g': 0.9}, 8), ('glass_media', {}, 8),
                         ('volumetric_caustic', {}, 8), ('volumetric_caustic', {'glass': False}, 4))
@@ -215,7 +231,7 @@ FULL = [(n, p, d, t, m, 128, 512)
 @pytest.mark.slow
 @pytest.mark.parametrize('name,params,max_depth,technique,mis,spp,ref_spp', FULL)
 def test_agrees_with_volpath_full_matrix(name, params, max_depth, technique, mis, spp, ref_spp):
-    agree_case(name, params, max_depth, technique, mis, 2048 if mis == 'uniform' else spp, ref_spp)
+    agree_case(name, params, max_depth, technique, mis, spp, ref_spp)
 
 
 # ----------------------------------------------------------- monochrome and spectral
