@@ -18,7 +18,11 @@ The grid is built with Dr.Jit alone, by a counting sort: each stored vertex hash
 (cell size 2r) and iteration, the buckets' counts are atomic increments, a prefix sum gives each
 bucket its start, and the increments' old values give each vertex its place. A query visits the
 2 x 2 x 2 cells nearest to z (they cover the ball of radius r around it), skipping a bucket
-that two of them hash to (it would count its vertices twice), in one loop over their entries."""
+that two of them hash to (it would count its vertices twice), in one loop over their entries.
+
+In a scene with participating media a camera vertex in a medium merges with the light vertices
+of its medium in the ball of radius r: 1 / (4/3 pi r^3 N) times sigma_s p beta_y w, without
+cosines (beta_y per unit volume there; Krivanek et al. 2014, UPBP's point-point 3D)."""
 
 import drjit as dr
 import mitsuba as mi
@@ -160,9 +164,10 @@ class Merger:
             totals.append(totals[-1] + dr.select(d, 0, end - first))
         return starts, totals
 
-    def merge_one(self, k, v, sub, group, radius2, active):
-        """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex) of the
-        camera subpath ``sub`` of iteration ``group`` (unnormalised)."""
+    def merge_one(self, k, v, sub, group, radius2, active, inv_factor=None):
+        """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex, or
+        media_path.PathVertex) of the camera subpath ``sub`` of iteration ``group``
+        (unnormalised); ``inv_factor``: mis.MIS.weight_merge's (scenes with media)."""
         c, g = self.ctx, self.grid
         si = v.si
         st = g.store
@@ -187,14 +192,12 @@ class Merger:
         # at grazing angles, where 1 / |cos_g| of z would explode (fireflies up to 42x the
         # median on a smooth torus); for light vertices on z's own plane the two are one
         inv_cos = safe_div(1.0, dr.abs(dr.dot(y.n, wl)))
-        factor = None
         if c.media is not None:     # a medium vertex: beta_y per unit volume, sigma_s p in f, no cosine
             inv_cos = dr.select(v.in_medium, 1.0, inv_cos)
-            factor = self.mis.merge_factor(v.in_medium) if self.mis.mis_merges else None
         value = f * rec.beta * inv_cos
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
-        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, factor)
+        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, inv_factor)
         return dr.select(ok, value * w, 0.0)
 
     @dr.syntax
@@ -208,8 +211,11 @@ class Merger:
         r = sched.radius(group)
         radius2 = r * r
         norm = 1.0 / (dr.pi * radius2 * sched.paths_f)
+        inv_factor = None
         if self.ctx.media is not None:      # inside media: the ball, 4/3 pi r^3 N
             norm = dr.select(v.in_medium, norm * (0.75 / r), norm)
+            if self.mis.mis_merges:         # (vm: no weights)
+                inv_factor = safe_div(1.0, self.mis.merge_factor(v.in_medium))
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))
@@ -219,6 +225,6 @@ class Merger:
             k = starts[0] + e
             for q in range(1, 8):
                 k = dr.select(e >= totals[q], starts[q] + (e - totals[q]), k)
-            total += self.merge_one(k, v, sub, group, radius2, active)
+            total += self.merge_one(k, v, sub, group, radius2, active, inv_factor)
             e += 1
         return sub.beta * total * norm

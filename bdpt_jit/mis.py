@@ -457,7 +457,8 @@ class MIS:
         ``pdf_cam_rev_w``: z's density of its incoming direction given the direction to y;
         ``merge_z``: whether a merge at z is a strategy (merge_here_camera). A merge at y is one
         only where merges are everywhere (y's camera-side neighbour is z, not delta), and y is on a
-        surface (``merge_y``: a mask where y may be a medium vertex; None: merge_everywhere)."""
+        surface or has its factor (``merge_y``: with media, merge_factor of y; None:
+        merge_everywhere)."""
         if not self.s.connections:
             return 0.0 * light.d_vcm
         merge_y = self.merge_everywhere if merge_y is None else merge_y
@@ -495,18 +496,19 @@ class MIS:
             return _finite(1.0 / (1.0 + self.h(pdf_cam_a / (self.n_lt * pdf_light_a))))  # [eq. 20], [Veach 9.2.2]
         return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
 
-    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, factor=None):
+    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, inv_factor=None):
         """Merge of camera vertex z with a light vertex y within the radius (merge.py).
         ``pdf_cam_dir_w``: z's BSDF density of y's incoming direction (the camera subpath going
         on where the light subpath came from); ``pdf_cam_rev_w``: z's density of its own incoming
         direction given y's (the light subpath going on where the camera subpath came from);
-        ``factor``: this merge's density relative to a surface merge (merge_factor; None: 1)."""
+        ``inv_factor``: 1 / this merge's density relative to a surface merge (1 / merge_factor,
+        scenes with media; None: 1)."""
         if self.s.ppm:
             return 1.0 + 0.0 * l_vcm                        # vm: a partition, no MIS
         if not self.mis_merges:
             return 0.0 * l_vcm
         w_light = l_vcm * self.vc_factor + l_vm * self.h(pdf_cam_dir_w)    # [VCM (38)]
         w_camera = c_vcm * self.vc_factor + c_vm * self.h(pdf_cam_rev_w)   # [VCM (39)]
-        if factor is not None:      # [UPBP] the others relative to this merge: / (eta_vol / eta)
-            return _finite(1.0 / ((w_light + w_camera) * dr.select(factor > 0, 1.0 / factor, 0.0) + 1.0))
+        if inv_factor is not None:  # [UPBP] the others relative to this merge: / (eta_vol / eta)
+            return _finite(1.0 / ((w_light + w_camera) * inv_factor + 1.0))
         return _finite(1.0 / (w_light + 1.0 + w_camera))                   # [VCM (37)]

@@ -45,7 +45,10 @@ def integrator(name, max_depth):
     params = {}
     for item in filter(None, extra.split('+')):
         key, _, value = item.partition('=')
-        params[key] = float(value) if value.replace('.', '', 1).replace('e-', '', 1).isdigit() else value
+        try:
+            params[key] = float(value)
+        except ValueError:
+            params[key] = {'true': True, 'false': False}.get(value, value)
     if name in ('volpath', 'volpathmis') and not params:
         return {'type': name, 'max_depth': max_depth}
     if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm'):

@@ -299,6 +299,27 @@ def test_merging_inside_media_image_mean():
     assert abs(mine.mean() - ref.mean()) <= 4 * se, f'vm {mine.mean():.6f} vs volpath {ref.mean():.6f} +- {se:.6f}'
 
 
+@pytest.mark.parametrize('everywhere', [False, True])
+def test_merge_factor_reaches_both_sides_of_the_mis(monkeypatch, everywhere):
+    """The wiring of merges inside media: in a media scene with vcm each subpath's scatter gets
+    its vertex's merge factor (mis.MIS.merge_factor: h(4r/3) at a medium vertex), not a mask,
+    on the camera and on the light side. A render cannot see the light side's factor replaced by
+    1 (planted: every render test passed; merges carry little weight next to the connections),
+    the partition test checks only what MIS does with it; this checks that the kernels pass it."""
+    from bdpt_jit import mis as mis_module
+    seen = set()
+    original = mis_module.MIS.scatter
+
+    def scatter(self, st, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here=True):
+        seen.add((camera_side, type(merge_here).__name__))
+        return original(self, st, cos_out, pdf_fwd_w, pdf_rev_w, is_delta, camera_side, merge_here)
+
+    monkeypatch.setattr(mis_module.MIS, 'scatter', scatter)
+    integ = {**bdpt('vcm', 4), 'radius': 0.01, 'merge_everywhere': everywhere}
+    render_batches(mi.load_dict(glass_juice()), integ, 1, 1)
+    assert seen == {(True, 'Float'), (False, 'Float')}, seen
+
+
 def white_furnace():
     """A white diffuse cube (reflectance 1) inside an albedo-1 medium in a null cube under a
     constant emitter of 1: every pixel 1, whatever blurs the light (merges of any radius). Flat
