@@ -99,15 +99,18 @@ def test_readme_parameter_table_is_the_source_table():
 
 def test_seed_as_uint32_renders_the_int_seed():
     """Mitsuba's render API takes an int or a ``mi.UInt32`` seed, and its own wrappers (the
-    ``aov`` integrator, ``mi.render`` with parameters) pass the latter: the same pixels."""
+    ``aov`` integrator, ``mi.render`` with parameters) pass the latter: the same pixels, up to
+    float32 rounding (light tracing's splats are atomic adds, summed in an order that varies
+    between runs: a fresh-clone run differed in the last digit), while another seed moves
+    pixels by far more."""
     import numpy as np
     scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4})
     a = np.array(mi.render(scene, integrator=integ, spp=2, seed=1))
     b = np.array(mi.render(scene, integrator=integ, spp=2, seed=mi.UInt32(1)))
     c = np.array(mi.render(scene, integrator=integ, spp=2, seed=2))
-    assert np.array_equal(a, b)
-    assert not np.array_equal(a, c)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert np.max(np.abs(a - c)) > 1e-3 * np.max(a)
 
 
 def test_render_without_develop_is_refused_with_a_reason():
