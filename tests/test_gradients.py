@@ -117,7 +117,8 @@ def test_primal_unchanged_with_gradients_enabled():
     for k in ('white.reflectance.value', 'floor.bsdf.alpha', 'light.emitter.radiance.value'):
         attach(params, k)
     with_grad = np.array(mi.render(scene, params, integrator=integ, spp=4, seed=3))
-    assert np.array_equal(plain, with_grad)
+    # (up to float32 rounding: light tracing's splats are atomic adds whose order varies)
+    np.testing.assert_allclose(plain, with_grad, rtol=1e-5, atol=1e-7)
 
 
 def test_geometry_with_delta_bsdfs_is_refused_with_a_reason():

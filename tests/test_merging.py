@@ -164,10 +164,11 @@ def test_vcm_without_specular_surfaces_is_bdpt():
     scene = cornell_scene(16)
     bdpt = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 5}), spp=4, seed=3))
     vcm = mi.load_dict({'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm'})
-    assert np.array_equal(np.array(mi.render(scene, integrator=vcm, spp=4, seed=3)), bdpt)
+    # (up to float32 rounding: light tracing's splats are atomic adds whose order varies)
+    np.testing.assert_allclose(np.array(mi.render(scene, integrator=vcm, spp=4, seed=3)), bdpt, rtol=1e-5, atol=1e-7)
     assert 'merge_iteration' not in vcm.last_render_info
     everywhere = mi.load_dict({'type': 'bdpt', 'max_depth': 5, 'technique': 'vcm', 'merge_everywhere': True})
-    assert not np.array_equal(np.array(mi.render(scene, integrator=everywhere, spp=4, seed=3)), bdpt)
+    assert not np.allclose(np.array(mi.render(scene, integrator=everywhere, spp=4, seed=3)), bdpt, rtol=1e-3)
 
 
 def enclosure_scene(rho):
