@@ -79,10 +79,13 @@ class CameraTracer:
 
     # ------------------------------------------------------------------ strategies
     def add_layer(self, s, t, value, w, active):
-        """The strategy layers (parameter strategy_images): ``value`` weighted by ``w`` and not."""
+        """The strategy layers (parameter strategy_images) and the moment estimation's film:
+        ``value`` weighted by ``w`` and not."""
         c = self.ctx
         if c.layers is not None:
             c.layers.add(s, t, self.film_pos, value * (w * c.inv_spp), value * c.inv_spp, active)
+        if c.moments is not None:       # the moment estimation's pilot (moments.py)
+            c.moments.add(s, t, self.film_pos, value * (w * c.inv_spp), value * c.inv_spp, active)
 
     def strategy_s0(self, v, ray, prev, sub):
         """s=0: the camera subpath hits an emitter at ``v`` (``prev``: the vertex before)."""

@@ -64,6 +64,7 @@ class Context:
     inv_spp            1 / spp, opaque: camera-sample contributions to the strategy layers
     splat_scale        the light image's scale per splat (film.FilmAccumulator.splat_scale), opaque
     layers             film.StrategyLayers, or None (parameter strategy_images)
+    moments            moments.MomentFilm, or None: technique auto's pilot (moments.instrument)
     stats              stats.RayStats, or None (parameter statistics)
     ad                 a differentiable pass (gradients.py): detached sampling, values with derivatives
     ad_geometry        the gradient-enabled shape parameters of a differentiable pass (their keys)
@@ -122,6 +123,7 @@ class Context:
                                  f"RGB images), not '{mi.variant()}'")
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
+        self.moments = None         # moments.MomentFilm of technique auto's pilot (moments.instrument)
         self.stats = RayStats() if settings['statistics'] else None
         self.sampling = ADSampling(self) if ad else Sampling(self)
         self.light_cache = self.cache_settings(settings)

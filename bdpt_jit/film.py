@@ -103,6 +103,22 @@ class FilmAccumulator:
         return dr.concat(parts, axis=2) if len(parts) > 1 else parts[0]
 
 
+class NearestPixel:
+    """The crop pixel that contains a film position (no reconstruction filter)."""
+
+    def __init__(self, film: mi.Film):
+        self.w, self.h = (int(v) for v in film.crop_size())
+        self.count = self.w * self.h
+        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
+
+    def index(self, film_pos, active):
+        """(the pixel's index in the crop, row-major; whether the position is inside and active)."""
+        p = mi.Point2i(dr.floor(film_pos - self.crop_offset))
+        inside = active & (p.x >= 0) & (p.y >= 0) & (p.x < self.w) & (p.y < self.h)
+        pixel = mi.UInt32(dr.clip(p.y, 0, self.h - 1) * self.w + dr.clip(p.x, 0, self.w - 1))
+        return pixel, inside
+
+
 class StrategyLayers:
     """One image per (s,t) strategy, weighted (as it enters the render) and unweighted (its
     estimate alone), like pbrt's visualizestrategies and Mitsuba 0.6's debug images.
@@ -120,6 +136,7 @@ class StrategyLayers:
                 self.names.append(f's{s}_t{k + 1 - s}')
         self.names.append('other')
         self.buf = dr.zeros(mi.Float, len(self.names) * 2 * self.w * self.h * 3)
+        self.pixels = NearestPixel(film)
 
     def layer_index(self, s, t):
         k = s + t - 1
@@ -127,9 +144,7 @@ class StrategyLayers:
 
     def add(self, s, t, film_pos, weighted, unweighted, active):
         s, t = mi.UInt32(s), mi.UInt32(t)
-        p = mi.Point2i(dr.floor(film_pos - self.crop_offset))
-        inside = active & (p.x >= 0) & (p.y >= 0) & (p.x < self.w) & (p.y < self.h)
-        pixel = mi.UInt32(dr.clip(p.y, 0, self.h - 1) * self.w + dr.clip(p.x, 0, self.w - 1))
+        pixel, inside = self.pixels.index(film_pos, active)
         base = (self.layer_index(s, t) * 2 * self.w * self.h + pixel) * 3
         for kind, value in ((0, weighted), (1, unweighted)):
             off = base + kind * self.w * self.h * 3

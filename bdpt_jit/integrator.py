@@ -52,6 +52,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.last_merge_radius = None   # the last pass's merging radius (world units)
         self.last_render_info = {}
         self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
+        self.moment_counts = None       # technique auto's pilot: the candidates' (n_c, n_lt) (moments.py)
+        self.moment_film = None         # its moments.MomentFilm after a render
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -59,7 +61,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         settings = self.settings
         if settings['technique'] == 'auto':       # its candidates are bdpt's configurations
             settings = {**settings, 'technique': 'bdpt'}
-        return Context(scene, sensor, settings, spp)
+        ctx = Context(scene, sensor, settings, spp)
+        if self.moment_counts is not None:        # technique auto's pilot (moments.py)
+            from .moments import instrument
+            self.moment_film = instrument(ctx, self.moment_counts)
+        return ctx
 
     def light_capacity(self, ctx: Context) -> int:
         return light_capacity(ctx.strategies, ctx.max_depth_edges, ctx.unbounded)
@@ -111,14 +117,18 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         return image
 
     def render_auto(self, scene, sensor, seed, spp, evaluate):
-        """technique 'auto' (auto.py): trial renders choose a configuration, which renders."""
+        """technique 'auto' (auto.py): a pilot's moment estimates and timed trials choose a
+        configuration, which renders."""
         from . import auto
         base = {k: v for k, v in self.settings.items() if v is not None}
 
         def make(settings):
             return BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
         t0 = _time.perf_counter()
-        best, trials = auto.choose(make, self.make_context(scene, sensor, spp), scene, sensor, seed)
+        ctx = self.make_context(scene, sensor, spp)
+        crop = sensor.film().crop_size()
+        vpp = pilot(self, ctx, seed, max(256, int(crop[0]) * int(crop[1]))) if ctx.strategies.trace_connect else 0.0
+        best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp)
         trial_s = _time.perf_counter() - t0
         chosen = make(best.settings)
         chosen.hooks = self.hooks
@@ -126,7 +136,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         image = chosen.render(scene, sensor, seed, spp, True, evaluate)
         self.strategy_images = chosen.strategy_images
         self.last_render_info = dict(chosen.last_render_info)
-        self.last_render_info['auto'] = {'chosen': best.name, 'trial_spp': auto.TRIAL_SPP, 'trial_s': trial_s,
+        self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.TRIAL_SPP,
+                                         'trial_s': trial_s, 'vertices_per_light_path': vpp,
                                          'candidates': [tr.report() for tr in trials]}
         return image
 
@@ -139,6 +150,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         for i, (spp_pass, pixel_start, pixel_count) in enumerate(plan):
             if samples_done > 0 and self.hooks.stop():
                 return samples_done, True, levels_used
+            if ctx.moments is not None:      # technique auto's pilot (moments.py): its halves
+                ctx.moments.begin_pass(spp_pass * pixel_count, spp_pass, samples_done // n_pixels)
             try:
                 levels = self.render_pass(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
             except (KeyboardInterrupt, RuntimeError) as e:
@@ -177,6 +190,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
         if ctx.layers is not None:
             dr.eval(ctx.layers.buf)
+        if ctx.moments is not None:
+            dr.eval(ctx.moments.buf)
         if ctx.stats is not None:
             ctx.stats.end_pass()
         if ctx.medium_stats is not None:

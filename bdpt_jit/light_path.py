@@ -70,6 +70,15 @@ class LightTracer:
         return si, Subpath(beta, beta_start, st, dr.full(mi.UInt32, 1, self.n), active)
 
     # ------------------------------------------------------------------ strategies
+    def add_layer(self, s, t, film_pos, weighted, unweighted, active):
+        """A splat's sample in the strategy layers (parameter strategy_images) and the moment
+        estimation's film (moments.py)."""
+        c = self.ctx
+        if c.layers is not None:
+            c.layers.add(s, t, film_pos, weighted, unweighted, active)
+        if c.moments is not None:
+            c.moments.add(s, t, film_pos, weighted, unweighted, active)
+
     def strategy_s1_t1(self, u, e, active):
         """s=1, t=1: the emitter vertex y0 connected to the camera."""
         c = self.ctx
@@ -96,8 +105,7 @@ class LightTracer:
         if not isinstance(self.wl_weight, float):
             value = value * self.wl_weight
         self.ps.film.put_splat(ds.uv, value * w, ok, si_e.wavelengths)
-        if c.layers is not None:
-            c.layers.add(1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
+        self.add_layer(1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
     def strategy_t1(self, v, sub, active):
         """t=1 (s >= 2): the light vertex ``v`` connected to the camera and splatted to the
@@ -122,8 +130,7 @@ class LightTracer:
         if not isinstance(self.wl_weight, float):
             value = value * self.wl_weight
         self.ps.film.put_splat(ds.uv, value * w, ok, si.wavelengths)
-        if c.layers is not None:
-            c.layers.add(sub.depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
+        self.add_layer(sub.depth + 1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
 
     def camera_edge(self, ray, ds, medium, v, active):
         """The shadow ray ``ray`` to the camera point ``ds`` through media from a point in

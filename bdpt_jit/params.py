@@ -53,9 +53,9 @@ PARAMS = (
           'glass), `vm` (vertex merging alone: progressive photon mapping, Hachisuka et al. 2008, '
           'merging at the first non-specular camera vertex). `vcm` and `vm` are consistent, not '
           'unbiased: their bias vanishes as the merging radius shrinks over passes. `auto`: the most '
-          'efficient of bdpt\'s configurations (the classic estimator and light vertex caches) by '
-          'trial renders before the render (docs/light-cache.md); the choice in '
-          '`last_render_info[\'auto\']`.',
+          'efficient of path tracing and bdpt\'s configurations (the classic estimator and light vertex '
+          'caches), by the second moments a pilot render estimates for each and their timed trials '
+          '(Grittmann et al. 2022; docs/light-cache.md); the choice in `last_render_info[\'auto\']`.',
           choices=('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto')),
     Param('radius', float, 0.005,
           'Initial merging radius of `vcm` and `vm`, relative to the radius of the scene\'s bounding '

@@ -265,20 +265,20 @@ def test_vcm_closed_sphere_with_the_cache():
 
 # ---------------------------------------------------------------------------- technique auto
 def test_auto_renders_the_chosen_configuration():
-    """technique 'auto' (auto.py): the trial renders choose the most efficient candidate by their
-    own measurements, and the image is that candidate's render with the caller's seed (the trials
-    share no sample with it: no bias from the choice)."""
+    """technique 'auto' (auto.py): the pilot's predicted variances and the timed trials choose
+    the most efficient candidate, and the image is that candidate's render with the caller's seed
+    (the pilot and the trials share no sample with it: no bias from the choice)."""
     from bdpt_jit import auto
     scene = load_scene('cornell-box.xml', 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
     info = integ.last_render_info['auto']
     names = [c['name'] for c in info['candidates']]
-    assert names == [n for n, _ in auto.CANDIDATES]
+    assert names == [n for n, _, _ in auto.CANDIDATES]
     best = max(info['candidates'], key=lambda c: c['efficiency'])
     assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
     for c in info['candidates']:
-        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0
+        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0 and c['missed'] == 0.0
         assert np.isclose(c['efficiency'], 1 / (c['relmse_1spp'] * c['seconds_per_spp']), rtol=1e-6)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     # (up to the order of the light image's atomic additions, which varies from run to run)

@@ -221,13 +221,16 @@ def aligned(cls, a, dtype):
     return cls(np.broadcast_to(np.asarray(a, dtype=dtype), (M,)).tolist())
 
 
-def recursive(kind, technique, P, chains=False, counts=None):
+def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
+    """Every strategy's weight by the kernels' recursion (``make_mis(strategies)``: another
+    mis.MIS than MIS(kind, ...), moments.FamilyMIS)."""
     everywhere = technique == 'vcm_all'
     technique = 'vcm' if everywhere else technique
     k = P['k']
     reachable = P.get('camera') != 'delta'
-    mis = MIS(kind, StrategySet(technique, camera_reachable=reachable), camera_chains=chains,
-              merge_everywhere=everywhere)
+    strategies = StrategySet(technique, camera_reachable=reachable)
+    mis = (MIS(kind, strategies, camera_chains=chains, merge_everywhere=everywhere) if make_mis is None
+           else make_mis(strategies))
     F = lambda a: aligned(mi.Float, a, np.float64)           # noqa: E731
     B = lambda a: aligned(mi.Bool, a, bool)                   # noqa: E731
     d2, cosA, cosB, pL, pE, delta_v = (P[n] for n in ('d2', 'cosA', 'cosB', 'pL', 'pE', 'delta'))

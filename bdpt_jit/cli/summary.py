@@ -100,8 +100,11 @@ def _bdpt_statistics(info):
                           f"{media['medium_inconsistencies']:,} connections refused (their ends disagree about the medium)")
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
-        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of trials; efficiency "
-                         + ', '.join(f"{c['name']} {c['efficiency']:.3g}" for c in a['candidates']))
+        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials; predicted relMSE at "
+                         "1 spp x s/spp: " + ', '.join(
+                             f"{c['name']} {c['relmse_1spp']:.3g} x {c['seconds_per_spp']:.3g}"
+                             + (f" (misses {c['missed']:.1%})" if c['efficiency'] == 0 else '')
+                             for c in a['candidates']))
     return stats
 
 

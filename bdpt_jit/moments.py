@@ -1,0 +1,267 @@
+"""Moment estimation (issue 22; Grittmann, Yazici, Georgiev and Slusallek, "Efficiency-aware
+multiple importance sampling for bidirectional rendering algorithms", SIGGRAPH 2022, sections
+4-5): from the samples of one render, the second moment that each candidate configuration of
+bdpt's estimator would have, path tracing included.
+
+With the balance heuristic and sample counts n_t [Veach 9.2.2] the combined estimator's second
+moment per camera sample is, up to the correlation terms the paper also neglects,
+
+    M(n) = integral of f(x)^2 / S_n(x) dx,        S_n(x) = sum_t n_t p_t(x)          (G22 eq. 8)
+
+(t over the candidate's strategies). A render of any configuration estimates it for every
+candidate at once: a sample path x of strategy s with weighted contribution C = w_s f / (n_s p_s)
+and unweighted contribution U = f / p_s adds C U / R_n(x) to candidate n's sum, with
+R_n(x) = S_n(x) / p_s(x). The candidates of bdpt differ only in the counts of two families:
+connections (s, t >= 2: n_c = c n_L / V) and light tracing (t = 1: n_lt = n_L / n); hits and
+emitter sampling count 1 in all of them. So
+
+    R_n = A_1 + n_c A_c + n_lt A_lt,                                            (family sums)
+
+A_f the sum of p_t / p_s over the strategies of family f. Path tracing is (n_c, n_lt) = (0, 0),
+the classic estimator (1, 1), the light vertex cache (c / (V / n_L), light_paths).
+
+``FamilyMIS`` is mis.MIS under the balance heuristic whose running quantities are vectors over
+the three families (one, connect, splat): its counts are the families' unit vectors, so the
+recursion of mis.py (every line of it linear in its quantities) carries each family's terms in
+its own component. Its weights dot the vector with a configuration's counts: with counts (1, 1)
+they are the classic estimator's balance weights, and they hand the vector to the ``MomentFilm``
+(the tap) that the strategy that asked for them then adds its sample to."""
+
+import drjit as dr
+import mitsuba as mi
+
+from .mis import MIS, _finite, _gate
+
+Family = mi.Vector3f              # a family vector: (one, connect, splat)
+
+
+def _one(x):
+    """A term of the family of hits and emitter sampling (count 1)."""
+    return Family(x, 0.0, 0.0)
+
+
+def _unit(k, like):
+    """The unit vector of family k (0 one, 1 connect, 2 splat) for arrays as wide as ``like``."""
+    z = dr.zeros(mi.Float, dr.width(like))
+    return Family(*[z + 1.0 if i == k else z for i in range(3)])
+
+
+class FamilyMIS(MIS):
+    """The balance heuristic with the families of the counts kept apart (see above). ``counts``:
+    the configuration whose weights it returns, (n_c, n_lt) (floats or arrays); ``tap``: the
+    MomentFilm that receives each weight's family vector R (or None)."""
+
+    def __init__(self, strategies, counts=(1.0, 1.0), tap=None):
+        super().__init__('balance', strategies)
+        if self.mis_merges:
+            raise ValueError('moments: merges are not a family of the moment estimation')
+        self.n_c = Family(0.0, 1.0, 0.0)        # the families' counts: their unit vectors
+        self.n_lt = Family(0.0, 0.0, 1.0)
+        self.eval_counts = counts
+        self.tap = tap
+
+    def set_counts(self, n_c, n_lt):
+        raise ValueError('moments: FamilyMIS carries the counts as families (its eval_counts)')
+
+    def _weight(self, own, R):
+        """The weight of a strategy of family ``own`` whose others' (and own) densities relative
+        to its own are the family vector ``R``: n_s / R_n under the configuration's counts."""
+        if self.tap is not None:
+            self.tap.offer(R, own)
+        n_c, n_lt = self.eval_counts
+        r = R.x + n_c * R.y + n_lt * R.z                                   # (family sums)
+        mine = (1.0, n_c, n_lt)[own]
+        return _finite(mine / r)                                           # [eq. 20], [Veach 9.2.2]
+
+    def _zero(self, like):
+        if self.tap is not None:
+            self.tap.offer(Family(0.0), 0)
+        return 0.0 * like
+
+    # ------------------------------------------------------------------ the light side's start
+    def camera_init(self, pdf_cam_w):
+        d_vcm, _ = super().camera_init(pdf_cam_w)       # [Veach 9.2.2] t=1 in the splat family
+        return Family(d_vcm), Family(0.0 * pdf_cam_w)
+
+    def light_init(self, pdf_emit_w, cos_e, is_delta=False):
+        return _one(super().light_init(pdf_emit_w, cos_e, is_delta))        # s=0: family one
+
+    def light_first_hit(self, d_vc, pdf_emit_w, pdf_direct_a, dist2, cos_hit):
+        d_vcm = _one(self.h(pdf_direct_a / pdf_emit_w))                     # [eq. 22] s=1: family one
+        return self.on_hit(d_vcm, d_vc, dist2, cos_hit)
+
+    # ------------------------------------------------------------------ weights
+    def weight_s0(self, d_vcm, d_vc, pdf_direct_a, pdf_emit_w, first_hit=False):
+        if not self.s.hits:
+            return self._zero(pdf_direct_a)
+        t = self.h(pdf_direct_a) * Family(d_vcm)                            # [eq. 20, 22] strategy s=1
+        # emitter sampling counts 1: where the hit is not the first, the term on_scatter put in
+        # the connect family is the s=1 strategy's (at the first hit: the splat s=1, t=1)
+        moved = Family(t.x + t.y, 0.0, t.z)
+        R = _one(1.0) + dr.select(first_hit, t, moved)
+        if self.s.connections:
+            R = R + self.h(pdf_emit_w) * Family(d_vc)                       # [eq. 20, 21] strategies s>=2
+        return self._weight(0, R)
+
+    def weight_s1(self, st, pdf_bsdf_w, pdf_rev_w, cos_z, em, merge_z=True):
+        if not self.s.direct:
+            return self._zero(pdf_bsdf_w)
+        w_light = self.h(pdf_bsdf_w / em.pdf_direct_w)                      # [eq. 20] strategy s=0
+        if em.is_delta is not False:
+            w_light = dr.select(em.is_delta, 0.0, w_light)                  # [eq. 20] p_0 = 0
+        R = _one(1.0 + w_light)
+        if self.s.connections:
+            R = R + (self.h(em.pdf_emit_w * cos_z / (em.pdf_direct_w * em.cos_e))     # [eq. 21, 22]
+                     * (_gate(self.vm_factor, merge_z) + st.d_vcm + st.d_vc * self.h(pdf_rev_w)))
+        return self._weight(0, R)
+
+    def weight_connect(self, light, cam, pdf_cam_to_light_a, pdf_light_to_cam_a, pdf_light_rev_w, pdf_cam_rev_w,
+                       merge_z=True, merge_y=None):
+        if not self.s.connections:
+            return self._zero(pdf_cam_to_light_a)
+        w_light = self.h(pdf_cam_to_light_a) * (light.d_vcm + light.d_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
+        w_camera = self.h(pdf_light_to_cam_a) * (cam.d_vcm + cam.d_vc * self.h(pdf_cam_rev_w))       # [eq. 21, 22]
+        return self._weight(1, _unit(1, pdf_cam_to_light_a) + w_light + w_camera)
+
+    def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w, merge_y=None):
+        if not self.s.splats:
+            return self._zero(pdf_cam_a)
+        R = _unit(2, pdf_cam_a)
+        if self.s.hits or self.s.direct or self.s.connections:
+            R = R + self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22]
+        return self._weight(2, R)
+
+    def weight_s1t1(self, pdf_cam_a, pdf_light_a):
+        if not self.s.splats:
+            return self._zero(pdf_cam_a)
+        R = _unit(2, pdf_cam_a)
+        if self.s.hits:
+            R = R + _one(self.h(pdf_cam_a / pdf_light_a))                   # [eq. 20] strategy s=0
+        return self._weight(2, R)
+
+
+def channel_mean(x):
+    """The mean of a Spectrum's channels (RGB, monochrome, or a spectral sample's wavelengths)."""
+    n = dr.size_v(mi.Spectrum)
+    return sum(x[i] for i in range(n)) * (1.0 / n)
+
+
+def layer_families(max_length):
+    """The family (0 one, 1 connect, 2 splat) of each strategy layer of film.StrategyLayers'
+    order (s + t - 1 edges up to ``max_length``, then 'other', whose family is -1: mixed)."""
+    out = []
+    for k in range(1, max_length + 1):
+        for s_ in range(0, k + 1):
+            t = k + 1 - s_
+            out.append(2 if t == 1 else (0 if s_ <= 1 else 1))
+    return out + [-1]
+
+
+class MomentFilm:
+    """Per crop pixel, for the mean of the colour channels (the estimates are of its moments; C
+    and U below are channel means): the image I (of the weighted contributions C) and, for each
+    candidate k of counts (n_c, n_lt): the sum of C U / R_k, the |C| that the candidate cannot
+    sample (R_k = 0: none of its strategies samples the path), and per strategy layer (s, t)
+    (film.StrategyLayers' order) the candidate's weighted image of that strategy, from the
+    strategy's own samples: U n_s / R_k, in two halves of the samples (``group``: the parity of
+    the sample's number in its pixel), whose product estimates its square without the bias of a
+    square of one estimate (E[I_a I_b] = I^2 for independent halves). A contribution goes to the pixel that contains it, as in
+    film.StrategyLayers; with the render's scales (1/spp per camera sample, the splat scale) an
+    image of spp samples per pixel gives the second moment of the candidate's one-sample pixel
+    estimate as spp times the sum (``estimates``)."""
+
+    def __init__(self, pixels, counts, max_length):
+        self.pixels = pixels                    # film.NearestPixel of the crop
+        self.counts = [(float(a), float(b)) for a, b in counts]
+        self.max_length = max(int(max_length), 1)
+        self.families = layer_families(self.max_length)
+        K, L = len(self.counts), len(self.families)
+        self.stride = 1 + 2 * K + 2 * K * L
+        self.group = None                       # each lane's half, 0 or 1 (begin_pass)
+        self.buf = dr.zeros(mi.Float, self.pixels.count * self.stride)
+        self.pending = None                     # the (family vector, own family) of the weight just formed
+
+    def begin_pass(self, n, spp_pass, spp_before):
+        """The halves of a pass of ``n`` samples (``spp_pass`` consecutive ones a pixel, after
+        ``spp_before`` samples a pixel in earlier passes): a light subpath's lane is its camera
+        sample's (the classic estimator), so both halves are independent samples."""
+        idx = dr.arange(mi.UInt32, n)
+        self.group = ((idx % dr.opaque(mi.UInt32, spp_pass)) + dr.opaque(mi.UInt32, spp_before)) & 1
+        dr.eval(self.group)
+
+    def offer(self, R, own):
+        """FamilyMIS: the family vector of the weight it has just returned, and its family."""
+        self.pending = (R, own)
+
+    def layer(self, s, t):
+        k = mi.UInt32(s) + mi.UInt32(t) - 1
+        return dr.select(k <= self.max_length, (k - 1) * (k + 2) // 2 + mi.UInt32(s), len(self.families) - 1)
+
+    def add(self, s, t, film_pos, weighted, unweighted, active):
+        """Strategy (s, t)'s sample (the arguments of film.StrategyLayers.add), whose weight was
+        the last one formed (``offer``)."""
+        if self.pending is None:
+            raise RuntimeError('moments: a sample reached the moment film without its family vector')
+        (R, own), self.pending = self.pending, None
+        pixel, inside = self.pixels.index(film_pos, active)
+        c_mean, u_mean = channel_mean(weighted), channel_mean(unweighted)
+        cu = c_mean * u_mean
+        ok = inside & (u_mean != 0) & dr.isfinite(cu) & dr.isfinite(u_mean)
+        base = pixel * self.stride
+        K = len(self.counts)
+        add = lambda value, at, mask: dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value, at, mask)  # noqa: E731
+        add(c_mean, base, ok)
+        lay = self.layer(s, t)
+        for k, (n_c, n_lt) in enumerate(self.counts):
+            r = R.x + n_c * R.y + n_lt * R.z                                # (family sums)
+            has = r > 0
+            inv_r = dr.select(has, 1.0 / dr.select(has, r, 1.0), 0.0)
+            m = cu * inv_r                                                  # C U / R_k
+            add(m, base + 1 + k, ok & dr.isfinite(m))
+            add(dr.abs(c_mean), base + 1 + K + k, ok & ~has)
+            i_t = u_mean * ((1.0, n_c, n_lt)[own] * inv_r)                  # U w_s of candidate k
+            at = base + 1 + 2 * K + (2 * k + self.group) * len(self.families) + lay
+            add(i_t, at, ok & dr.isfinite(i_t))
+
+    def estimates(self, spp):
+        """(I, V, missed) as numpy arrays: the image (pixels); each candidate's variance of its
+        one-sample pixel estimate (candidates x pixels), M - sum_t I_t^2 / n_t (the second moment
+        less each strategy's squared image over its samples in the estimate; the 'other' layer's paths, longer than
+        max_length, keep their squares: an overestimate); the share of the image's magnitude each
+        candidate cannot sample (candidates)."""
+        import numpy as np
+        a = np.array(self.buf, np.float64).reshape(self.pixels.count, self.stride)
+        K, L = len(self.counts), len(self.families)
+        image = a[:, 0]
+        M = spp * a[:, 1:1 + K].T
+        missed = a[:, 1 + K:1 + 2 * K].sum(axis=0) / max(float(np.sum(np.abs(image))), 1e-30)
+        halves = a[:, 1 + 2 * K:].reshape(-1, K, 2, L)
+        V = np.empty_like(M)
+        P = self.pixels.count
+        for k, (n_c, n_lt) in enumerate(self.counts):
+            # a strategy's samples in a one-sample pixel estimate: the camera sample's (count 1 or
+            # n_c), and light tracing's P n_lt light subpaths, each of which may reach the pixel
+            n = np.array([(1.0, n_c, P * n_lt)[f] if f >= 0 else np.inf for f in self.families])
+            sq = 4.0 * halves[:, k, 0, :] * halves[:, k, 1, :]          # (2 I_a)(2 I_b): I_t^2
+            sq = np.where(n > 0, sq / np.where(n > 0, n, 1.0), 0.0)
+            V[k] = M[k] - sq.sum(axis=1)
+        return image, V, missed
+
+
+def family_record(record):
+    """The light-vertex record type ``record`` with its MIS quantities as family vectors."""
+    fields = {**record.DRJIT_STRUCT, 'd_vcm': Family, 'd_vc': Family}
+    return type(record.__name__ + '_families', (record,), {'DRJIT_STRUCT': fields})
+
+
+def instrument(ctx, counts):
+    """Context ``ctx`` (technique bdpt, the classic estimator) made to estimate the moments of
+    the candidates of ``counts`` (a list of (n_c, n_lt)): its weights FamilyMIS's (the balance
+    heuristic with counts 1), its records carrying family vectors, and ``ctx.moments``."""
+    from .film import NearestPixel
+    if ctx.light_cache is not None or ctx.ad:
+        raise ValueError('moments: the pilot is the classic estimator, without derivatives')
+    ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, 8))
+    ctx.mis = FamilyMIS(ctx.strategies, tap=ctx.moments)
+    ctx.record = family_record(ctx.record)
+    return ctx.moments
