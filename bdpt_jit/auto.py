@@ -10,8 +10,11 @@ SIGGRAPH 2022) and each candidate's measured time.
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter).
-2. The cost: each candidate renders TRIAL_SPP samples per pixel twice (the first compiles its
-   kernels and is not timed); t is the second's seconds per sample per pixel.
+2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
+   pixel twice (the first compiles their kernels and is not timed); t is the second's seconds per
+   sample per pixel. The other caches' t comes from a cost model fitted to the three, linear in
+   the light subpaths per camera sample and in the connections per camera vertex; the best
+   candidate by the model is timed too before it is chosen (until the best is a timed one).
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
    pixel), the efficiency 1 / (v t), the best candidate of those that miss less than MAX_MISSED
    of the image. The render then runs it with the caller's seed and spp.
@@ -33,59 +36,70 @@ PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halve
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
-
-# (name, parameters over the caller's, the counts (c, light_paths): n_c = c / (V / n_L), n_lt =
-# light_paths; path tracing connects and splats nothing, the classic estimator has both 1)
-CANDIDATES = (
-    ('pt', {'technique': 'pt'}, (0, 0.0)),
-    ('bdpt', {}, None),
-    ('cache 0.25x1', {'light_paths': 0.25, 'connections': 1}, (1, 0.25)),
-    ('cache 1x1', {'light_paths': 1.0, 'connections': 1}, (1, 1.0)),
-    ('cache 1x4', {'light_paths': 1.0, 'connections': 4}, (4, 1.0)),
-)
+LIGHT_PATHS = (0.25, 0.5, 1.0, 2.0)     # the caches' light subpaths per camera sample (n_L / n)
+CONNECTIONS = (1, 2, 4, 8)              # and cached vertices per camera vertex (c)
+TIMED_CACHES = ((0.25, 1), (1.0, 1), (1.0, 4))   # the caches whose time is measured (the cost model's)
 
 
 class Trial:
     """One candidate, one field a line."""
 
-    def __init__(self, name, settings, counts):
-        self.name = name                # the candidate's name (CANDIDATES)
+    def __init__(self, name, settings, counts, cache=None):
+        self.name = name                # 'pt', 'bdpt' or 'cache NxC'
         self.settings = settings        # its parameters over the caller's
         self.counts = counts            # (n_c, n_lt) of its MIS [Veach 9.2.2]
-        self.seconds = None             # wall time of one timed trial render
+        self.cache = cache              # (light_paths, connections) of a cache, or None
+        self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
+        self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.rel_var = None             # v: predicted relative MSE at one sample per pixel
         self.missed = None              # the share of the image none of its strategies samples
-        self.efficiency = None          # 1 / (v t), t per sample per pixel; 0 where it misses light
+        self.efficiency = None          # 1 / (v t); 0 where it misses light
 
     def report(self):
         return {'name': self.name, 'settings': self.settings, 'counts': self.counts,
-                'seconds_per_spp': self.seconds / TRIAL_SPP, 'relmse_1spp': self.rel_var,
+                'seconds_per_spp': self.seconds, 'timed': self.timed, 'relmse_1spp': self.rel_var,
                 'missed': self.missed, 'efficiency': self.efficiency}
 
 
 def candidates(ctx, vpp):
-    """The candidates for the scene of Context ``ctx`` (technique bdpt); ``vpp``: the stored
-    vertices per light subpath (light_cache.pilot), which the caches' n_c = c / vpp needs."""
-    out = []
-    for name, settings, cache in CANDIDATES:
-        if cache is None:
-            counts = (1.0, 1.0)
-        elif not ctx.strategies.trace_connect or mi.is_spectral:
-            continue            # no connection to draw (max_depth < 3), or a spectral variant (no cache)
-        else:
-            c, light_paths = cache
-            counts = (c / max(vpp, 1e-3), light_paths)
-        out.append(Trial(name, settings, counts))
+    """The candidates for the scene of Context ``ctx`` (technique bdpt): path tracing, the
+    classic estimator and the light vertex caches of LIGHT_PATHS x CONNECTIONS (where connections
+    exist, max_depth >= 3, and not in spectral variants); ``vpp``: the stored vertices per light
+    subpath (light_cache.pilot), which a cache's n_c = c / vpp needs."""
+    out = [Trial('pt', {'technique': 'pt'}, (0.0, 0.0)), Trial('bdpt', {}, (1.0, 1.0))]
+    if not ctx.strategies.trace_connect or mi.is_spectral:
+        return out
+    for light_paths in LIGHT_PATHS:
+        for c in CONNECTIONS:
+            out.append(Trial(f'cache {light_paths:g}x{c}', {'light_paths': light_paths, 'connections': c},
+                             (c / max(vpp, 1e-3), light_paths), (light_paths, c)))
     return out
 
 
 def time_trial(make, trial, scene, sensor, seed):
-    """The candidate's seconds per render of TRIAL_SPP (``make(settings)``: an integrator)."""
+    """The candidate's measured seconds per sample per pixel (``make(settings)``: an integrator):
+    the second of two renders of TRIAL_SPP (the first compiles its kernels)."""
     integ = make(trial.settings)
     for k in range(2):
         t0 = time.perf_counter()
         integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1 + k, spp=TRIAL_SPP)
-        trial.seconds = time.perf_counter() - t0
+        trial.seconds = (time.perf_counter() - t0) / TRIAL_SPP
+    trial.timed = True
+
+
+def cost_model(trials):
+    """The caches' seconds per sample per pixel, t = a + b n_L/n + d c, fitted to the TIMED_CACHES'
+    measured times (b, d at least 0: noise must not make a cost negative), for the caches not
+    timed."""
+    t = {tr.cache: tr.seconds for tr in trials if tr.timed and tr.cache is not None}
+    if len(t) < 3:
+        return
+    b = max((t[(1.0, 1)] - t[(0.25, 1)]) / 0.75, 0.0)       # per light subpath a camera sample
+    d = max((t[(1.0, 4)] - t[(1.0, 1)]) / 3.0, 0.0)          # per connection a camera vertex
+    a = t[(1.0, 1)] - b - d
+    for tr in trials:
+        if tr.cache is not None and not tr.timed:
+            tr.seconds = max(a + b * tr.cache[0] + d * tr.cache[1], 1e-9)
 
 
 def pilot(make, trials, scene, sensor, seed):
@@ -106,8 +120,14 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
     for tr in trials:
-        time_trial(make, tr, scene, sensor, seed)
-        ok = tr.missed < MAX_MISSED
-        tr.efficiency = 1.0 / max(tr.rel_var * tr.seconds / TRIAL_SPP, 1e-30) if ok else 0.0
-    best = max(trials, key=lambda tr: tr.efficiency)
-    return best, trials
+        if tr.cache is None or tr.cache in TIMED_CACHES:
+            time_trial(make, tr, scene, sensor, seed)
+    cost_model(trials)
+    while True:         # the best by the model is timed before it is chosen
+        for tr in trials:
+            ok = tr.missed < MAX_MISSED
+            tr.efficiency = 1.0 / max(tr.rel_var * tr.seconds, 1e-30) if ok else 0.0
+        best = max(trials, key=lambda tr: tr.efficiency)
+        if best.timed:
+            return best, trials
+        time_trial(make, best, scene, sensor, seed)

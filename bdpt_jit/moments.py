@@ -33,6 +33,8 @@ import mitsuba as mi
 from .mis import MIS, _finite, _gate
 
 Family = mi.Vector3f              # a family vector: (one, connect, splat)
+MAX_PIXELS = 16384                # pixels whose moments the pilot keeps (a lattice of a larger image)
+MAX_LENGTH = 6                    # strategies of longer paths share one layer (MomentFilm.estimates)
 
 
 def _one(x):
@@ -168,17 +170,21 @@ class MomentFilm:
     square of one estimate (E[I_a I_b] = I^2 for independent halves). A contribution goes to the pixel that contains it, as in
     film.StrategyLayers; with the render's scales (1/spp per camera sample, the splat scale) an
     image of spp samples per pixel gives the second moment of the candidate's one-sample pixel
-    estimate as spp times the sum (``estimates``)."""
+    estimate as spp times the sum (``estimates``). Of an image of more than MAX_PIXELS pixels
+    only every step-th pixel's moments are kept (the candidates are compared by their mean)."""
 
-    def __init__(self, pixels, counts, max_length):
+    def __init__(self, pixels, counts, max_length, max_pixels=MAX_PIXELS):
         self.pixels = pixels                    # film.NearestPixel of the crop
+        # the pixels whose moments are kept: every step-th (all of an image of max_pixels or fewer)
+        self.step = -(-pixels.count // max_pixels)
+        self.count = -(-pixels.count // self.step)
         self.counts = [(float(a), float(b)) for a, b in counts]
         self.max_length = max(int(max_length), 1)
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
         self.stride = 1 + 2 * K + 2 * K * L
         self.group = None                       # each lane's half, 0 or 1 (begin_pass)
-        self.buf = dr.zeros(mi.Float, self.pixels.count * self.stride)
+        self.buf = dr.zeros(mi.Float, self.count * self.stride)
         self.pending = None                     # the (family vector, own family) of the weight just formed
 
     def begin_pass(self, n, spp_pass, spp_before):
@@ -204,6 +210,9 @@ class MomentFilm:
             raise RuntimeError('moments: a sample reached the moment film without its family vector')
         (R, own), self.pending = self.pending, None
         pixel, inside = self.pixels.index(film_pos, active)
+        if self.step > 1:
+            inside = inside & (pixel % self.step == 0)
+            pixel = pixel // self.step
         c_mean, u_mean = channel_mean(weighted), channel_mean(unweighted)
         cu = c_mean * u_mean
         ok = inside & (u_mean != 0) & dr.isfinite(cu) & dr.isfinite(u_mean)
@@ -224,20 +233,20 @@ class MomentFilm:
             add(i_t, at, ok & dr.isfinite(i_t))
 
     def estimates(self, spp):
-        """(I, V, missed) as numpy arrays: the image (pixels); each candidate's variance of its
+        """(I, V, missed) as numpy arrays: the image (the kept pixels); each candidate's variance of its
         one-sample pixel estimate (candidates x pixels), M - sum_t I_t^2 / n_t (the second moment
         less each strategy's squared image over its samples in the estimate; the 'other' layer's paths, longer than
         max_length, keep their squares: an overestimate); the share of the image's magnitude each
         candidate cannot sample (candidates)."""
         import numpy as np
-        a = np.array(self.buf, np.float64).reshape(self.pixels.count, self.stride)
+        a = np.array(self.buf, np.float64).reshape(self.count, self.stride)
         K, L = len(self.counts), len(self.families)
         image = a[:, 0]
         M = spp * a[:, 1:1 + K].T
         missed = a[:, 1 + K:1 + 2 * K].sum(axis=0) / max(float(np.sum(np.abs(image))), 1e-30)
         halves = a[:, 1 + 2 * K:].reshape(-1, K, 2, L)
         V = np.empty_like(M)
-        P = self.pixels.count
+        P = self.pixels.count           # the crop's pixels: light subpaths a one-sample image traces
         for k, (n_c, n_lt) in enumerate(self.counts):
             # a strategy's samples in a one-sample pixel estimate: the camera sample's (count 1 or
             # n_c), and light tracing's P n_lt light subpaths, each of which may reach the pixel
@@ -261,7 +270,7 @@ def instrument(ctx, counts):
     from .film import NearestPixel
     if ctx.light_cache is not None or ctx.ad:
         raise ValueError('moments: the pilot is the classic estimator, without derivatives')
-    ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, 8))
+    ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, MAX_LENGTH))
     ctx.mis = FamilyMIS(ctx.strategies, tap=ctx.moments)
     ctx.record = family_record(ctx.record)
     return ctx.moments

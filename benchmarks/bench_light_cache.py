@@ -6,7 +6,8 @@ relative MSE at equal time against a reference rendered by ``path`` (``--ref-int
         --res 128 --max-depth 10 --budget 8 --configs path,pt,classic,1:2,0.25:1,1:1,2:4
 
 A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
-``classic`` is bdpt's default estimator, ``pt`` its path tracing. Each contestant renders one
+``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``auto`` technique auto (its
+choice, the pilot and the trials, inside the budget; the choice in the last column). Each contestant renders one
 warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
 passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
 as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
@@ -42,6 +43,8 @@ def contestant(name, max_depth):
         return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'pt'}
     if name == 'classic':
         return {'type': 'bdpt', 'max_depth': max_depth}
+    if name == 'auto':
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'auto'}
     ratio, c = name.split(':')
     return {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': float(ratio),
             'connections': -1 if c == 'auto' else int(c)}
@@ -89,18 +92,41 @@ def equal_time(scene, integ, budget, batch_spp, seed0=0):
     return acc / spp, spp, time.perf_counter() - t0
 
 
+def equal_time_auto(scene, integ, budget, batch_spp, seed0=0):
+    """equal_time for technique auto: its first batch chooses (the pilot and the trials count in
+    the budget), the other batches render the chosen configuration; also returns the choice."""
+    t0 = time.perf_counter()
+    img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0)
+    choice = integ.last_render_info['auto']
+    chosen = mi.load_dict({'type': 'bdpt', 'max_depth': integ.max_depth,
+                           **next(c['settings'] for c in choice['candidates'] if c['name'] == choice['chosen'])})
+    acc, spp, b = np.array(img, np.float64)[:, :, :3] * batch_spp, batch_spp, 1
+    while time.perf_counter() - t0 < budget:
+        img = mi.render(scene, integrator=chosen, spp=batch_spp, seed=seed0 + b)
+        acc = acc + np.array(img, np.float64)[:, :, :3] * batch_spp
+        spp += batch_spp
+        b += 1
+    return acc / spp, spp, time.perf_counter() - t0, choice['chosen']
+
+
 def measure(args, name, ref):
     scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth))
     t0 = time.perf_counter()
     dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
     warm = time.perf_counter() - t0
-    rels, spps, sps = [], [], []
+    rels, spps, sps, chosen = [], [], [], []
     for r in range(args.repeats):               # seeds of their own: 1000 r + batch
-        img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
+        if name == 'auto':
+            img, spp, secs, c = equal_time_auto(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
+            chosen.append(c)
+        else:
+            img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
         rels.append(relmse(img, ref))
         spps.append(spp)
         sps.append(spp * args.res * args.res / secs)
     info = getattr(integ, 'last_render_info', {}).get('light_cache', {})
+    if chosen:
+        info = {'chose': ' / '.join(chosen)}
     return dict(name=name, warm=warm, spp=int(np.median(spps)), sps=float(np.median(sps)),
                 relmse=float(np.median(rels)), rels=rels, info=info)
 

@@ -274,12 +274,26 @@ def test_auto_renders_the_chosen_configuration():
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
     info = integ.last_render_info['auto']
     names = [c['name'] for c in info['candidates']]
-    assert names == [n for n, _, _ in auto.CANDIDATES]
+    caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
+    assert names == ['pt', 'bdpt'] + caches
     best = max(info['candidates'], key=lambda c: c['efficiency'])
     assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
     for c in info['candidates']:
         assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0 and c['missed'] == 0.0
         assert np.isclose(c['efficiency'], 1 / (c['relmse_1spp'] * c['seconds_per_spp']), rtol=1e-6)
+    # the cost model: linear in light_paths and connections through the three timed caches
+    # (the best by the model was timed too: the chosen one is)
+    caches = [c for c in info['candidates'] if 'light_paths' in c['settings']]
+    t = {tuple(c['settings'].values()): c['seconds_per_spp'] for c in caches}
+    timed = [c['name'] for c in info['candidates'] if c['timed']]
+    assert timed[:5] == ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
+    assert best['timed']
+    b = max((t[(1.0, 1)] - t[(0.25, 1)]) / 0.75, 0.0)
+    d = max((t[(1.0, 4)] - t[(1.0, 1)]) / 3, 0.0)
+    for c in caches:
+        if not c['timed']:
+            n_l, conn = c['settings']['light_paths'], c['settings']['connections']
+            np.testing.assert_allclose(c['seconds_per_spp'], t[(1.0, 1)] + b * (n_l - 1) + d * (conn - 1), rtol=1e-6)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     # (up to the order of the light image's atomic additions, which varies from run to run)
     np.testing.assert_allclose(img, np.array(mi.render(scene, integrator=alone, spp=4, seed=5)),

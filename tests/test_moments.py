@@ -10,6 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+import media_scenes
 import test_light_cache as tlc
 from helpers import load_scene
 import test_mis_partition as tmp
@@ -47,14 +48,16 @@ def pilot(scene, max_depth, counts, seed, spp=4):
     return img, integ.moment_film.estimates(spp)
 
 
-def test_the_pilot_renders_the_classic_balance_image():
+@pytest.mark.parametrize('name', ['cornell', 'fog room'])
+def test_the_pilot_renders_the_classic_balance_image(name):
     """With counts (1, 1) the family weights are the classic estimator's balance weights: the
     pilot's image is bdpt's with mis=balance and the same seed, up to float32 rounding (a wrong
     family sum would move every pixel), and the moment film's image (nearest pixel) is the
-    film's (a box filter)."""
-    scene = load_scene('cornell-box.xml', 16, 4)
-    img, (I, V, missed) = pilot(scene, 4, [(0.0, 0.0), (1.0, 1.0)], seed=7)
-    ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'mis': 'balance'}),
+    film's (a box filter); in a scene with media too (the distance densities in the families)."""
+    D = 4 if name == 'cornell' else 3
+    scene = load_scene('cornell-box.xml', 16, D) if name == 'cornell' else mi.load_dict(media_scenes.fog_room(res=12))
+    img, (I, V, missed) = pilot(scene, D, [(0.0, 0.0), (1.0, 1.0)], seed=7)
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': D, 'mis': 'balance'}),
                              spp=4, seed=7))
     np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(I, img[..., :3].mean(axis=2).ravel(), rtol=1e-4, atol=1e-6)
