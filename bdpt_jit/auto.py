@@ -11,8 +11,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter).
 2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
-   pixel twice (the first compiles their kernels and is not timed); t is the second's seconds per
-   sample per pixel. The other caches' t comes from a cost model fitted to the three, linear in
+   pixel; t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
+   history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the three, linear in
    the light subpaths per camera sample and in the connections per camera vertex; the best
    candidate by the model is timed too before it is chosen (until the best is a timed one).
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
@@ -28,10 +28,11 @@ heuristic's differs from by little (Veach's thesis, section 9.2.4)."""
 
 import time
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-TRIAL_SPP = 2                   # samples per pixel of each timed trial render
+TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
@@ -76,14 +77,27 @@ def candidates(ctx, vpp):
     return out
 
 
+def kernel_seconds(render):
+    """Seconds the kernels that ``render()`` launches run (Dr.Jit's kernel history): neither
+    tracing them in Python nor compiling them, which a long render pays once a pass or once."""
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        render()
+        dr.sync_thread()
+    finally:
+        history = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    return sum(k.get('execution_time', 0.0) for k in history) / 1e3
+
+
 def time_trial(make, trial, scene, sensor, seed):
-    """The candidate's measured seconds per sample per pixel (``make(settings)``: an integrator):
-    the second of two renders of TRIAL_SPP (the first compiles its kernels)."""
+    """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
+    kernels' time in a render of TRIAL_SPP."""
     integ = make(trial.settings)
-    for k in range(2):
-        t0 = time.perf_counter()
-        integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1 + k, spp=TRIAL_SPP)
-        trial.seconds = (time.perf_counter() - t0) / TRIAL_SPP
+    t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=TRIAL_SPP))
+    trial.seconds = max(t, 1e-9) / TRIAL_SPP
     trial.timed = True
 
 

@@ -286,7 +286,7 @@ def test_auto_renders_the_chosen_configuration():
     caches = [c for c in info['candidates'] if 'light_paths' in c['settings']]
     t = {tuple(c['settings'].values()): c['seconds_per_spp'] for c in caches}
     timed = [c['name'] for c in info['candidates'] if c['timed']]
-    assert timed[:5] == ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
+    assert set(['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]) <= set(timed)
     assert best['timed']
     b = max((t[(1.0, 1)] - t[(0.25, 1)]) / 0.75, 0.0)
     d = max((t[(1.0, 4)] - t[(1.0, 1)]) / 3, 0.0)

@@ -165,3 +165,32 @@ def test_auto_picks_path_tracing_in_the_open_and_bidirectional_through_an_openin
         assert by_name['pt']['relmse_1spp'] > 10 * by_name[info['chosen']]['relmse_1spp']
     else:
         assert info['chosen'] == 'pt', info
+
+
+def caustic_of_a_point_light(res):
+    """A glass ball floating above a floor under a point light: its caustic on the floor, in the
+    camera's view, is sampled by light tracing alone (the point light cannot be hit, and emitter
+    sampling through glass is blocked)."""
+    return mi.load_dict({
+        'type': 'scene', 'sensor': _camera([0, 2.0, 2.5], [0, 0, 0], res),
+        'floor': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3),
+                  'bsdf': _diffuse(0.7)},
+        'ball': {'type': 'sphere', 'center': [0, 1.2, 0], 'radius': 0.5, 'bsdf': {'type': 'dielectric'}},
+        'light': {'type': 'point', 'position': [0, 3, 0], 'intensity': {'type': 'rgb', 'value': [20, 20, 20]}},
+    })
+
+
+def test_auto_never_chooses_a_candidate_that_misses_light():
+    """Path tracing misses the caustic of a point light (no strategy of it samples those paths):
+    the pilot measures a share of the image it misses (every other candidate's is exactly 0), and
+    auto does not choose it (efficiency 0), whatever its variance elsewhere: it would render an
+    image without the caustic."""
+    scene = caustic_of_a_point_light(24)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 5, 'technique': 'auto'})
+    img = np.array(mi.render(scene, integrator=integ, spp=2, seed=1))
+    assert np.all(np.isfinite(img))
+    info = integ.last_render_info['auto']
+    by_name = {c['name']: c for c in info['candidates']}
+    pt = by_name['pt']
+    assert pt['missed'] > 0.01 and pt['efficiency'] == 0.0 and info['chosen'] != 'pt'
+    assert all(c['missed'] == 0.0 for c in info['candidates'] if c['name'] != 'pt')
