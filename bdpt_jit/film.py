@@ -119,6 +119,13 @@ class NearestPixel:
         return pixel, inside
 
 
+def layer_index(s, t, max_length):
+    """The layer of strategy (s, t) (UInt32s) in StrategyLayers' order: by path length
+    s + t - 1 up to ``max_length``, then s; longer paths share the last ('other')."""
+    k = s + t - 1
+    return dr.select(k <= max_length, (k - 1) * (k + 2) // 2 + s, max_length * (max_length + 3) // 2)
+
+
 class StrategyLayers:
     """One image per (s,t) strategy, weighted (as it enters the render) and unweighted (its
     estimate alone), like pbrt's visualizestrategies and Mitsuba 0.6's debug images.
@@ -129,7 +136,6 @@ class StrategyLayers:
     def __init__(self, film: mi.Film, max_length: int):
         self.max_length = max(int(max_length), 1)
         self.w, self.h = (int(v) for v in film.crop_size())
-        self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
         self.names = []
         for k in range(1, self.max_length + 1):
             for s in range(0, k + 1):
@@ -139,8 +145,7 @@ class StrategyLayers:
         self.pixels = NearestPixel(film)
 
     def layer_index(self, s, t):
-        k = s + t - 1
-        return dr.select(k <= self.max_length, (k - 1) * (k + 2) // 2 + s, len(self.names) - 1)
+        return layer_index(s, t, self.max_length)
 
     def add(self, s, t, film_pos, weighted, unweighted, active):
         s, t = mi.UInt32(s), mi.UInt32(t)

@@ -30,6 +30,7 @@ they are the classic estimator's balance weights, and they hand the vector to th
 import drjit as dr
 import mitsuba as mi
 
+from .film import layer_index
 from .mis import MIS, _finite, _gate
 
 Family = mi.Vector3f              # a family vector: (one, connect, splat)
@@ -199,10 +200,6 @@ class MomentFilm:
         """FamilyMIS: the family vector of the weight it has just returned, and its family."""
         self.pending = (R, own)
 
-    def layer(self, s, t):
-        k = mi.UInt32(s) + mi.UInt32(t) - 1
-        return dr.select(k <= self.max_length, (k - 1) * (k + 2) // 2 + mi.UInt32(s), len(self.families) - 1)
-
     def add(self, s, t, film_pos, weighted, unweighted, active):
         """Strategy (s, t)'s sample (the arguments of film.StrategyLayers.add), whose weight was
         the last one formed (``offer``)."""
@@ -223,7 +220,7 @@ class MomentFilm:
         add = lambda value, at, mask: dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value, at, mask,  # noqa: E731
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
-        lay = self.layer(s, t)
+        lay = layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
         for k, (n_c, n_lt) in enumerate(self.counts):
             r = R.x + n_c * R.y + n_lt * R.z                                # (family sums)
             has = r > 0

@@ -153,8 +153,10 @@ def test_auto_picks_path_tracing_in_the_open_and_bidirectional_through_an_openin
     """Issue 22's test 4: under a sky (a large emitter in open space) path tracing is the most
     efficient (every candidate's variance about the same, pt's samples the cheapest); in a room
     lit through a small opening bidirectional sampling is (pt's predicted variance many times
-    the others': few of its paths find the light), checked in last_render_info."""
-    scene = open_scene(32) if scene_name == 'open' else lamp_room(32)
+    the others': few of its paths find the light), checked in last_render_info. The sky at
+    96 x 96: at 32 x 32 the kernels' times a sample, under a second worker's load, put pt's at
+    bdpt's and the choice flipped."""
+    scene = open_scene(96) if scene_name == 'open' else lamp_room(32)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
     img = np.array(mi.render(scene, integrator=integ, spp=2, seed=3))
     assert np.all(np.isfinite(img))
@@ -164,7 +166,7 @@ def test_auto_picks_path_tracing_in_the_open_and_bidirectional_through_an_openin
         assert info['chosen'] != 'pt'
         assert by_name['pt']['relmse_1spp'] > 10 * by_name[info['chosen']]['relmse_1spp']
     else:
-        assert info['chosen'] == 'pt', info
+        assert info['chosen'] == 'pt', [(c['name'], c['relmse_1spp'], c['seconds_per_spp']) for c in info['candidates'] if c['timed']]
 
 
 def caustic_of_a_point_light(res):
