@@ -180,6 +180,9 @@ class MomentFilm:
         self.step = -(-pixels.count // max_pixels)
         self.count = -(-pixels.count // self.step)
         self.counts = [(float(a), float(b)) for a, b in counts]
+        # the counts as opaque values: n_c = c / (V / n_L) varies from pilot to pilot, and as
+        # literals it would make every pilot's kernels new ones (compiled again: ~1 s a pilot)
+        self.opaque_counts = [(dr.opaque(mi.Float, a), dr.opaque(mi.Float, b)) for a, b in self.counts]
         self.max_length = max(int(max_length), 1)
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
@@ -221,7 +224,7 @@ class MomentFilm:
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
         lay = layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
-        for k, (n_c, n_lt) in enumerate(self.counts):
+        for k, (n_c, n_lt) in enumerate(self.opaque_counts):
             r = R.x + n_c * R.y + n_lt * R.z                                # (family sums)
             has = r > 0
             inv_r = dr.select(has, 1.0 / dr.select(has, r, 1.0), 0.0)
