@@ -40,16 +40,18 @@ DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchm
 LIGHT_PATHS = (0.25, 0.5, 1.0, 2.0)     # the caches' light subpaths per camera sample (n_L / n)
 CONNECTIONS = (1, 2, 4, 8)              # and cached vertices per camera vertex (c)
 TIMED_CACHES = ((0.25, 1), (1.0, 1), (1.0, 4))   # the caches whose time is measured (the cost model's)
+TIMED_MERGING = (0.25, 1)       # the merging cache whose time is measured (with vcm's: the merges' cost model)
 
 
 class Trial:
     """One candidate, one field a line."""
 
     def __init__(self, name, settings, counts, cache=None):
-        self.name = name                # 'pt', 'bdpt' or 'cache NxC'
+        self.name = name                # 'pt', 'bdpt', 'vcm', 'cache NxC' or 'vcm cache NxC'
         self.settings = settings        # its parameters over the caller's
-        self.counts = counts            # (n_c, n_lt) of its MIS [Veach 9.2.2]
+        self.counts = counts            # (n_c, n_lt, n_m) of its MIS [Veach 9.2.2]
         self.cache = cache              # (light_paths, connections) of a cache, or None
+        self.merges = counts[2] > 0     # it merges (technique vcm, everywhere)
         self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.rel_var = None             # v: predicted relative MSE at one sample per pixel
@@ -62,18 +64,40 @@ class Trial:
                 'missed': self.missed, 'efficiency': self.efficiency}
 
 
+def offers_merging(ctx):
+    """Whether merging candidates are offered: where connections exist (merges need a light
+    vertex and a camera vertex, as they do) and the scene has a BSDF with a glossy or delta lobe,
+    or shapes this test cannot see (instances). Among diffuse surfaces only, a merge samples the
+    paths that a connection samples with a density as good, and costs a gather."""
+    from .scene_check import has_instances
+    if not ctx.strategies.trace_connect or ctx.ad:
+        return False
+    if has_instances(ctx.scene):
+        return True
+    lobes = int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)
+    return any(int(s.bsdf().flags()) & lobes for s in ctx.scene.shapes() if s.bsdf() is not None)
+
+
 def candidates(ctx, vpp):
     """The candidates for the scene of Context ``ctx`` (technique bdpt): path tracing, the
     classic estimator and the light vertex caches of LIGHT_PATHS x CONNECTIONS (where connections
-    exist, max_depth >= 3, and not in spectral variants); ``vpp``: the stored vertices per light
-    subpath (light_cache.pilot), which a cache's n_c = c / vpp needs."""
-    out = [Trial('pt', {'technique': 'pt'}, (0.0, 0.0)), Trial('bdpt', {}, (1.0, 1.0))]
+    exist, max_depth >= 3, and not in spectral variants), and where ``offers_merging``, each of
+    the bidirectional ones merging everywhere (technique vcm); ``vpp``: the stored vertices per
+    light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs."""
+    merging = offers_merging(ctx)
+    vcm = {'technique': 'vcm', 'merge_everywhere': True}
+    out = [Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0)), Trial('bdpt', {}, (1.0, 1.0, 0.0))]
+    if merging:
+        out.append(Trial('vcm', vcm, (1.0, 1.0, 1.0)))
     if not ctx.strategies.trace_connect or mi.is_spectral:
         return out
-    for light_paths in LIGHT_PATHS:
-        for c in CONNECTIONS:
-            out.append(Trial(f'cache {light_paths:g}x{c}', {'light_paths': light_paths, 'connections': c},
-                             (c / max(vpp, 1e-3), light_paths), (light_paths, c)))
+    for m in ((False, True) if merging else (False,)):
+        for light_paths in LIGHT_PATHS:
+            for c in CONNECTIONS:
+                settings = {**(vcm if m else {}), 'light_paths': light_paths, 'connections': c}
+                out.append(Trial(f"{'vcm ' if m else ''}cache {light_paths:g}x{c}", settings,
+                                 (c / max(vpp, 1e-3), light_paths, light_paths if m else 0.0),
+                                 (light_paths, c)))
     return out
 
 
@@ -104,22 +128,34 @@ def time_trial(make, trial, scene, sensor, seed):
 def cost_model(trials):
     """The caches' seconds per sample per pixel, t = a + b n_L/n + d c, fitted to the TIMED_CACHES'
     measured times (b, d at least 0: noise must not make a cost negative), for the caches not
-    timed."""
-    t = {tr.cache: tr.seconds for tr in trials if tr.timed and tr.cache is not None}
+    timed; a merging cache's, t + e + g n_L/n (its gathers find more light vertices as n_L
+    grows), fitted to vcm's extra time over bdpt's (n_L/n = 1) and TIMED_MERGING's over its
+    cache's."""
+    t = {tr.cache: tr.seconds for tr in trials if tr.timed and tr.cache is not None and not tr.merges}
     if len(t) < 3:
         return
     b = max((t[(1.0, 1)] - t[(0.25, 1)]) / 0.75, 0.0)       # per light subpath a camera sample
     d = max((t[(1.0, 4)] - t[(1.0, 1)]) / 3.0, 0.0)          # per connection a camera vertex
     a = t[(1.0, 1)] - b - d
+    e = g = 0.0
+    named = {tr.name: tr.seconds for tr in trials if tr.timed}
+    merging = {tr.cache: tr.seconds for tr in trials if tr.timed and tr.merges and tr.cache is not None}
+    if 'vcm' in named and TIMED_MERGING in merging:
+        x1 = max(named['vcm'] - named['bdpt'], 0.0)                     # merges at n_L/n = 1
+        x0 = max(merging[TIMED_MERGING] - t[TIMED_MERGING], 0.0)        # and at TIMED_MERGING's
+        g = max((x1 - x0) / (1.0 - TIMED_MERGING[0]), 0.0)
+        e = max(x1 - g, 0.0)
     for tr in trials:
         if tr.cache is not None and not tr.timed:
-            tr.seconds = max(a + b * tr.cache[0] + d * tr.cache[1], 1e-9)
+            lp, c = tr.cache
+            tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), 1e-9)
 
 
 def pilot(make, trials, scene, sensor, seed):
     """The pilot render: each trial's predicted relative MSE at one sample per pixel and the
     share it misses (moments.MomentFilm.estimates)."""
-    integ = make({'mis': 'balance'})
+    merging = any(tr.merges for tr in trials)
+    integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
     integ.moment_counts = [tr.counts for tr in trials]
     integ.render(scene, sensor, seed=seed + TRIAL_SEED, spp=PILOT_SPP)
     image, V, missed = integ.moment_film.estimates(PILOT_SPP)
@@ -134,7 +170,7 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
     for tr in trials:
-        if tr.cache is None or tr.cache in TIMED_CACHES:
+        if tr.cache is None or tr.cache == TIMED_MERGING or (tr.cache in TIMED_CACHES and not tr.merges):
             time_trial(make, tr, scene, sensor, seed)
     cost_model(trials)
     while True:         # the best by the model is timed before it is chosen

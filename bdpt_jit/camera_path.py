@@ -310,7 +310,7 @@ class CameraTracer:
         elif c.strategies.trace_connect:
             L = L + self.connect_all(self.idx, v, sub, smooth, merge_here)
         if c.strategies.trace_merge:
-            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask)
+            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask, self.film_pos)
         return sub, (L, prev, prev_delta), merge_here
 
     def after_step(self, ray, si, v, sub, carry, was_delta):

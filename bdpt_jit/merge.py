@@ -164,10 +164,12 @@ class Merger:
             totals.append(totals[-1] + dr.select(d, 0, end - first))
         return starts, totals
 
-    def merge_one(self, k, v, sub, group, radius2, active, inv_factor=None):
+    def merge_one(self, k, v, sub, group, radius2, active, inv_factor=None, tap=None):
         """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex, or
         media_path.PathVertex) of the camera subpath ``sub`` of iteration ``group``
-        (unnormalised); ``inv_factor``: mis.MIS.weight_merge's (scenes with media)."""
+        (unnormalised); ``inv_factor``: mis.MIS.weight_merge's (scenes with media); ``tap``:
+        (film position, scale to the film) of technique auto's pilot, whose moment film takes
+        each merge (moments.py)."""
         c, g = self.ctx, self.grid
         si = v.si
         st = g.store
@@ -198,13 +200,17 @@ class Merger:
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
         w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, inv_factor)
+        if tap is not None:
+            film_pos, scale = tap
+            c.moments.add(None, None, film_pos, value * (w * scale), value * scale, ok)
         return dr.select(ok, value * w, 0.0)
 
     @dr.syntax
-    def gather(self, idx, v, sub, active):
+    def gather(self, idx, v, sub, active, film_pos=None):
         """Radiance towards the camera subpath ``sub`` of sample ``idx`` from merging at its
         vertex ``v``: the estimate over its iteration's light vertices within that iteration's
-        radius, times the camera throughput."""
+        radius, times the camera throughput (``film_pos``: the sample's, for technique auto's
+        pilot)."""
         si = v.si
         sched = self.grid.schedule
         group = sched.group(idx)
@@ -216,6 +222,7 @@ class Merger:
             norm = dr.select(v.in_medium, norm * (0.75 / r), norm)
             if self.mis.mis_merges:         # (vm: no weights)
                 inv_factor = safe_div(1.0, self.mis.merge_factor(v.in_medium))
+        tap = None if self.ctx.moments is None else (film_pos, sub.beta * norm * self.ctx.inv_spp)
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))
@@ -225,6 +232,6 @@ class Merger:
             k = starts[0] + e
             for q in range(1, 8):
                 k = dr.select(e >= totals[q], starts[q] + (e - totals[q]), k)
-            total += self.merge_one(k, v, sub, group, radius2, active, inv_factor)
+            total += self.merge_one(k, v, sub, group, radius2, active, inv_factor, tap)
             e += 1
         return sub.beta * total * norm

@@ -149,6 +149,7 @@ class MIS:
         # vertex, and the camera side's sums drop those strategies at each of its delta vertices)
         self.camera_chains = camera_chains
         self.vm_factor = 0.0          # h(eta): set per pass by for_pass (merges)
+        self.merge_unit = 1.0         # a merge's own term in d_vm (moments.FamilyMIS: the merge family)
         self.vc_factor = 0.0          # h(1/eta)
         self.vol_factor = None        # h(eta_vol / eta): a merge at a medium vertex (for_pass; media)
         self.mis_merges = strategies.merges and not strategies.ppm
@@ -376,7 +377,7 @@ class MIS:
         (the other arguments as on_scatter's)."""
         inv_fwd = dr.select(pdf_fwd_w > 0, 1.0 / pdf_fwd_w, 0.0)
         d_vm_smooth = self.h(cos_out * inv_fwd) * (d_vm * self.h(pdf_rev_w) + d_vcm * self.vc_factor
-                                                   + _gate(1.0, merge_here))   # [VCM (36)]
+                                                   + _gate(self.merge_unit, merge_here))   # [VCM (36)]
         if is_delta is None:
             return d_vm_smooth
         return dr.select(is_delta, d_vm * self.h(cos_out), d_vm_smooth)              # [VCM (36)] delta

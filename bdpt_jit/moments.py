@@ -11,21 +11,27 @@ moment per camera sample is, up to the correlation terms the paper also neglects
 (t over the candidate's strategies). A render of any configuration estimates it for every
 candidate at once: a sample path x of strategy s with weighted contribution C = w_s f / (n_s p_s)
 and unweighted contribution U = f / p_s adds C U / R_n(x) to candidate n's sum, with
-R_n(x) = S_n(x) / p_s(x). The candidates of bdpt differ only in the counts of two families:
-connections (s, t >= 2: n_c = c n_L / V) and light tracing (t = 1: n_lt = n_L / n); hits and
-emitter sampling count 1 in all of them. So
+R_n(x) = S_n(x) / p_s(x). The candidates of bdpt differ only in the counts of three families:
+connections (s, t >= 2: n_c = c n_L / V), light tracing (t = 1: n_lt = n_L / n) and merges
+(n_m: 0 without merging; with it the merges' eta = pi r^2 N scales with the light subpaths N of
+an iteration, so relative to a pilot of the classic estimator's N, n_m = n_L / n as well); hits
+and emitter sampling count 1 in all of them. So
 
-    R_n = A_1 + n_c A_c + n_lt A_lt,                                            (family sums)
+    R_n = A_1 + n_c A_c + n_lt A_lt + n_m A_m,                                  (family sums)
 
-A_f the sum of p_t / p_s over the strategies of family f. Path tracing is (n_c, n_lt) = (0, 0),
-the classic estimator (1, 1), the light vertex cache (c / (V / n_L), light_paths).
+A_f the sum of p_t / p_s over the strategies of family f. Path tracing is (n_c, n_lt, n_m) =
+(0, 0, 0), the classic estimator (1, 1, 0), vcm (1, 1, 1), the light vertex cache (c / (V /
+n_L), light_paths, 0 or light_paths).
 
 ``FamilyMIS`` is mis.MIS under the balance heuristic whose running quantities are vectors over
-the three families (one, connect, splat): its counts are the families' unit vectors, so the
-recursion of mis.py (every line of it linear in its quantities) carries each family's terms in
-its own component. Its weights dot the vector with a configuration's counts: with counts (1, 1)
-they are the classic estimator's balance weights, and they hand the vector to the ``MomentFilm``
-(the tap) that the strategy that asked for them then adds its sample to."""
+the four families (one, connect, splat, merge): its counts are the families' unit vectors (a
+merge's eta is eta times the merge family's), so the recursion of mis.py (every line of it
+linear in its quantities; 1 / eta, the merges' own scale, is a number) carries each family's
+terms in its own component. Its weights dot the vector with a configuration's counts: with
+counts (1, 1, 1) they are the pilot's own balance weights, and they hand the vector to the
+``MomentFilm`` (the tap) that the strategy that asked for them then adds its sample to. A pilot
+that merges merges everywhere (``merge_everywhere``): whether a merge behind a non-delta vertex
+is a strategy is not a count, so the merging candidates are those that merge everywhere."""
 
 import drjit as dr
 import mitsuba as mi
@@ -33,35 +39,47 @@ import mitsuba as mi
 from .film import layer_index
 from .mis import MIS, _finite, _gate
 
-Family = mi.Vector3f              # a family vector: (one, connect, splat)
+Family = mi.Vector4f              # a family vector: (one, connect, splat, merge)
 MAX_PIXELS = 16384                # pixels whose moments the pilot keeps (a lattice of a larger image)
 MAX_LENGTH = 6                    # strategies of longer paths share one layer (MomentFilm.estimates)
 
 
 def _one(x):
     """A term of the family of hits and emitter sampling (count 1)."""
-    return Family(x, 0.0, 0.0)
+    return Family(x, 0.0, 0.0, 0.0)
 
 
 def _unit(k, like):
-    """The unit vector of family k (0 one, 1 connect, 2 splat) for arrays as wide as ``like``."""
+    """The unit vector of family k (0 one, 1 connect, 2 splat, 3 merge) for arrays as wide as ``like``."""
     z = dr.zeros(mi.Float, dr.width(like))
-    return Family(*[z + 1.0 if i == k else z for i in range(3)])
+    return Family(*[z + 1.0 if i == k else z for i in range(4)])
 
 
 class FamilyMIS(MIS):
     """The balance heuristic with the families of the counts kept apart (see above). ``counts``:
-    the configuration whose weights it returns, (n_c, n_lt) (floats or arrays); ``tap``: the
-    MomentFilm that receives each weight's family vector R (or None)."""
+    the configuration whose weights it returns, (n_c, n_lt, n_m) (floats or arrays); ``tap``:
+    the MomentFilm that receives each weight's family vector R (or None); ``merge_everywhere``:
+    the merge set of a pilot that merges (it must merge everywhere, see above)."""
 
-    def __init__(self, strategies, counts=(1.0, 1.0), tap=None):
-        super().__init__('balance', strategies)
-        if self.mis_merges:
-            raise ValueError('moments: merges are not a family of the moment estimation')
-        self.n_c = Family(0.0, 1.0, 0.0)        # the families' counts: their unit vectors
-        self.n_lt = Family(0.0, 0.0, 1.0)
+    def __init__(self, strategies, counts=(1.0, 1.0, 1.0), tap=None, merge_everywhere=False):
+        super().__init__('balance', strategies, merge_everywhere=merge_everywhere)
+        if self.mis_merges and not merge_everywhere:
+            raise ValueError('moments: a pilot that merges merges everywhere (merge_everywhere): '
+                             'merges behind delta vertices only are not a family of counts')
+        self.n_c = Family(0.0, 1.0, 0.0, 0.0)   # the families' counts: their unit vectors
+        self.n_lt = Family(0.0, 0.0, 1.0, 0.0)
+        self.merge_unit = Family(0.0, 0.0, 0.0, 1.0)
         self.eval_counts = counts
         self.tap = tap
+
+    def set_radius(self, eta):
+        """A merge's terms in the merge family: vm_factor = eta times its unit vector, vc_factor
+        = 1 / eta (the merges' scale, relative to which the others' terms are taken)."""
+        if not self.mis_merges:
+            return
+        self.vm_factor = Family(0.0, 0.0, 0.0, eta)                         # [VCM (20)] n_VM = N
+        has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
+        self.vc_factor = 1.0 / eta if has_vc else 0.0                       # [VCM (20)] n_VC = 1
 
     def set_counts(self, n_c, n_lt):
         raise ValueError('moments: FamilyMIS carries the counts as families (its eval_counts)')
@@ -71,9 +89,9 @@ class FamilyMIS(MIS):
         to its own are the family vector ``R``: n_s / R_n under the configuration's counts."""
         if self.tap is not None:
             self.tap.offer(R, own)
-        n_c, n_lt = self.eval_counts
-        r = R.x + n_c * R.y + n_lt * R.z                                   # (family sums)
-        mine = (1.0, n_c, n_lt)[own]
+        n_c, n_lt, n_m = self.eval_counts
+        r = R.x + n_c * R.y + n_lt * R.z + n_m * R.w                       # (family sums)
+        mine = (1.0, n_c, n_lt, n_m)[own]
         return _finite(mine / r)                                           # [eq. 20], [Veach 9.2.2]
 
     def _zero(self, like):
@@ -81,7 +99,13 @@ class FamilyMIS(MIS):
             self.tap.offer(Family(0.0), 0)
         return 0.0 * like
 
-    # ------------------------------------------------------------------ the light side's start
+    # ------------------------------------------------------------------ the subpaths' starts
+    def camera_start(self, pdf_cam_w, dist2, cos_hit):
+        st = super().camera_start(pdf_cam_w, dist2, cos_hit)
+        if self.mis_merges:                 # d_vm a family vector from the start (the loop's state)
+            st.d_vm = Family(st.d_vm, st.d_vm, st.d_vm, st.d_vm)
+        return st
+
     def camera_init(self, pdf_cam_w):
         d_vcm, _ = super().camera_init(pdf_cam_w)       # [Veach 9.2.2] t=1 in the splat family
         return Family(d_vcm), Family(0.0 * pdf_cam_w)
@@ -100,7 +124,7 @@ class FamilyMIS(MIS):
         t = self.h(pdf_direct_a) * Family(d_vcm)                            # [eq. 20, 22] strategy s=1
         # emitter sampling counts 1: where the hit is not the first, the term on_scatter put in
         # the connect family is the s=1 strategy's (at the first hit: the splat s=1, t=1)
-        moved = Family(t.x + t.y, 0.0, t.z)
+        moved = Family(t.x + t.y, 0.0, t.z, t.w)
         R = _one(1.0) + dr.select(first_hit, t, moved)
         if self.s.connections:
             R = R + self.h(pdf_emit_w) * Family(d_vc)                       # [eq. 20, 21] strategies s>=2
@@ -122,8 +146,11 @@ class FamilyMIS(MIS):
                        merge_z=True, merge_y=None):
         if not self.s.connections:
             return self._zero(pdf_cam_to_light_a)
-        w_light = self.h(pdf_cam_to_light_a) * (light.d_vcm + light.d_vc * self.h(pdf_light_rev_w))  # [eq. 21, 22]
-        w_camera = self.h(pdf_light_to_cam_a) * (cam.d_vcm + cam.d_vc * self.h(pdf_cam_rev_w))       # [eq. 21, 22]
+        merge_y = self.merge_everywhere if merge_y is None else merge_y
+        w_light = self.h(pdf_cam_to_light_a) * (_gate(self.vm_factor, merge_y) + light.d_vcm
+                                                + light.d_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22], [VCM (40)]
+        w_camera = self.h(pdf_light_to_cam_a) * (_gate(self.vm_factor, merge_z) + cam.d_vcm
+                                                 + cam.d_vc * self.h(pdf_cam_rev_w))      # [eq. 21, 22], [VCM (41)]
         return self._weight(1, _unit(1, pdf_cam_to_light_a) + w_light + w_camera)
 
     def weight_t1(self, l_vcm, l_vc, pdf_cam_a, pdf_light_rev_w, merge_y=None):
@@ -131,7 +158,9 @@ class FamilyMIS(MIS):
             return self._zero(pdf_cam_a)
         R = _unit(2, pdf_cam_a)
         if self.s.hits or self.s.direct or self.s.connections:
-            R = R + self.h(pdf_cam_a) * (l_vcm + l_vc * self.h(pdf_light_rev_w))   # [eq. 21, 22]
+            merge_y = self.merge_everywhere if merge_y is None else merge_y
+            R = R + self.h(pdf_cam_a) * (_gate(self.vm_factor, merge_y) + l_vcm
+                                         + l_vc * self.h(pdf_light_rev_w))           # [eq. 21, 22], [VCM (46)]
         return self._weight(2, R)
 
     def weight_s1t1(self, pdf_cam_a, pdf_light_a):
@@ -141,6 +170,15 @@ class FamilyMIS(MIS):
         if self.s.hits:
             R = R + _one(self.h(pdf_cam_a / pdf_light_a))                   # [eq. 20] strategy s=0
         return self._weight(2, R)
+
+    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, inv_factor=None):
+        if not self.mis_merges:
+            return self._zero(pdf_cam_dir_w)
+        others = (l_vcm * self.vc_factor + l_vm * self.h(pdf_cam_dir_w)              # [VCM (38)]
+                  + c_vcm * self.vc_factor + c_vm * self.h(pdf_cam_rev_w))           # [VCM (39)]
+        if inv_factor is not None:      # [UPBP] the others relative to this merge: / (eta_vol / eta)
+            others = others * inv_factor
+        return self._weight(3, _unit(3, pdf_cam_dir_w) + others)                    # [VCM (37)]
 
 
 def channel_mean(x):
@@ -179,10 +217,10 @@ class MomentFilm:
         # the pixels whose moments are kept: every step-th (all of an image of max_pixels or fewer)
         self.step = -(-pixels.count // max_pixels)
         self.count = -(-pixels.count // self.step)
-        self.counts = [(float(a), float(b)) for a, b in counts]
+        self.counts = [tuple(float(x) for x in k) + (0.0,) * (3 - len(k)) for k in counts]   # (n_c, n_lt, n_m)
         # the counts as opaque values: n_c = c / (V / n_L) varies from pilot to pilot, and as
         # literals it would make every pilot's kernels new ones (compiled again: ~1 s a pilot)
-        self.opaque_counts = [(dr.opaque(mi.Float, a), dr.opaque(mi.Float, b)) for a, b in self.counts]
+        self.opaque_counts = [tuple(dr.opaque(mi.Float, x) for x in k) for k in self.counts]
         self.max_length = max(int(max_length), 1)
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
@@ -204,8 +242,8 @@ class MomentFilm:
         self.pending = (R, own)
 
     def add(self, s, t, film_pos, weighted, unweighted, active):
-        """Strategy (s, t)'s sample (the arguments of film.StrategyLayers.add), whose weight was
-        the last one formed (``offer``)."""
+        """Strategy (s, t)'s sample (the arguments of film.StrategyLayers.add; s = t = None: a
+        merge), whose weight was the last one formed (``offer``)."""
         if self.pending is None:
             raise RuntimeError('moments: a sample reached the moment film without its family vector')
         (R, own), self.pending = self.pending, None
@@ -223,14 +261,16 @@ class MomentFilm:
         add = lambda value, at, mask: dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value, at, mask,  # noqa: E731
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
-        lay = layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
-        for k, (n_c, n_lt) in enumerate(self.opaque_counts):
-            r = R.x + n_c * R.y + n_lt * R.z                                # (family sums)
+        lay = None if s is None else layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
+        for k, (n_c, n_lt, n_m) in enumerate(self.opaque_counts):
+            r = R.x + n_c * R.y + n_lt * R.z + n_m * R.w                    # (family sums)
             has = r > 0
             inv_r = dr.select(has, 1.0 / dr.select(has, r, 1.0), 0.0)
             m = cu * inv_r                                                  # C U / R_k
             add(m, base + 1 + k, ok & dr.isfinite(m))
             add(dr.abs(c_mean), base + 1 + K + k, ok & ~has)
+            if lay is None:         # merges: their I^2 / N_t, N_t = P n_m light subpaths, is left out
+                continue
             i_t = u_mean * ((1.0, n_c, n_lt)[own] * inv_r)                  # U w_s of candidate k
             at = base + 1 + 2 * K + (2 * k + self.group) * len(self.families) + lay
             add(i_t, at, ok & dr.isfinite(i_t))
@@ -250,7 +290,7 @@ class MomentFilm:
         halves = a[:, 1 + 2 * K:].reshape(-1, K, 2, L)
         V = np.empty_like(M)
         P = self.pixels.count           # the crop's pixels: light subpaths a one-sample image traces
-        for k, (n_c, n_lt) in enumerate(self.counts):
+        for k, (n_c, n_lt, _) in enumerate(self.counts):
             # a strategy's samples in a one-sample pixel estimate: the camera sample's (count 1 or
             # n_c), and light tracing's P n_lt light subpaths, each of which may reach the pixel
             n = np.array([(1.0, n_c, P * n_lt)[f] if f >= 0 else np.inf for f in self.families])
@@ -263,17 +303,20 @@ class MomentFilm:
 def family_record(record):
     """The light-vertex record type ``record`` with its MIS quantities as family vectors."""
     fields = {**record.DRJIT_STRUCT, 'd_vcm': Family, 'd_vc': Family}
+    if 'd_vm' in fields:
+        fields['d_vm'] = Family
     return type(record.__name__ + '_families', (record,), {'DRJIT_STRUCT': fields})
 
 
 def instrument(ctx, counts):
-    """Context ``ctx`` (technique bdpt, the classic estimator) made to estimate the moments of
-    the candidates of ``counts`` (a list of (n_c, n_lt)): its weights FamilyMIS's (the balance
-    heuristic with counts 1), its records carrying family vectors, and ``ctx.moments``."""
+    """Context ``ctx`` (technique bdpt, or vcm merging everywhere; the classic estimator) made
+    to estimate the moments of the candidates of ``counts`` (a list of (n_c, n_lt, n_m)): its
+    weights FamilyMIS's (the balance heuristic with counts 1), its records carrying family
+    vectors, and ``ctx.moments``."""
     from .film import NearestPixel
     if ctx.light_cache is not None or ctx.ad:
         raise ValueError('moments: the pilot is the classic estimator, without derivatives')
     ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, MAX_LENGTH))
-    ctx.mis = FamilyMIS(ctx.strategies, tap=ctx.moments)
+    ctx.mis = FamilyMIS(ctx.strategies, tap=ctx.moments, merge_everywhere=ctx.mis.merge_everywhere)
     ctx.record = family_record(ctx.record)
     return ctx.moments

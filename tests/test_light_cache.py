@@ -264,36 +264,50 @@ def test_vcm_closed_sphere_with_the_cache():
 
 
 # ---------------------------------------------------------------------------- technique auto
-def test_auto_renders_the_chosen_configuration():
+@pytest.mark.parametrize('scene_name,merging', [('cornell-box.xml', False), ('caustic.xml', True)])
+def test_auto_renders_the_chosen_configuration(scene_name, merging):
     """technique 'auto' (auto.py): the pilot's predicted variances and the timed trials choose
     the most efficient candidate, and the image is that candidate's render with the caller's seed
-    (the pilot and the trials share no sample with it: no bias from the choice)."""
+    (the pilot and the trials share no sample with it: no bias from the choice). Merging
+    candidates (vcm everywhere) where the scene has a glossy or delta BSDF (the caustic's glass),
+    none among diffuse walls (the Cornell box)."""
     from bdpt_jit import auto
-    scene = load_scene('cornell-box.xml', 16, 4)
+    scene = load_scene(scene_name, 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
     info = integ.last_render_info['auto']
     names = [c['name'] for c in info['candidates']]
     caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
-    assert names == ['pt', 'bdpt'] + caches
+    assert names == ['pt', 'bdpt'] + (['vcm'] + caches + ['vcm ' + c for c in caches] if merging else caches)
     best = max(info['candidates'], key=lambda c: c['efficiency'])
     assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
     for c in info['candidates']:
-        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0 and c['missed'] == 0.0
-        assert np.isclose(c['efficiency'], 1 / (c['relmse_1spp'] * c['seconds_per_spp']), rtol=1e-6)
-    # the cost model: linear in light_paths and connections through the three timed caches
+        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0
+        assert c['efficiency'] == 0.0 if c['missed'] >= auto.MAX_MISSED else np.isclose(
+            c['efficiency'], 1 / (c['relmse_1spp'] * c['seconds_per_spp']), rtol=1e-6)
+        assert (c['counts'][2] > 0) == ('vcm' in c['name'])
+    # the cost model: linear in light_paths and connections through the three timed caches, a
+    # merging cache's its cache's plus e + g light_paths through vcm and the timed merging cache
     # (the best by the model was timed too: the chosen one is)
-    caches = [c for c in info['candidates'] if 'light_paths' in c['settings']]
-    t = {tuple(c['settings'].values()): c['seconds_per_spp'] for c in caches}
-    timed = [c['name'] for c in info['candidates'] if c['timed']]
-    assert set(['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]) <= set(timed)
-    assert best['timed']
-    b = max((t[(1.0, 1)] - t[(0.25, 1)]) / 0.75, 0.0)
-    d = max((t[(1.0, 4)] - t[(1.0, 1)]) / 3, 0.0)
-    for c in caches:
-        if not c['timed']:
+    timed = {c['name']: c['seconds_per_spp'] for c in info['candidates'] if c['timed']}
+    want = ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
+    if merging:
+        want += ['vcm', 'vcm cache {:g}x{}'.format(*auto.TIMED_MERGING)]
+    assert set(want) <= set(timed) and best['timed']
+    t = {c['name']: c['seconds_per_spp'] for c in info['candidates']}
+    b = max((t['cache 1x1'] - t['cache 0.25x1']) / 0.75, 0.0)
+    d = max((t['cache 1x4'] - t['cache 1x1']) / 3, 0.0)
+    e = g = 0.0
+    if merging:
+        x1 = max(t['vcm'] - t['bdpt'], 0.0)
+        x0 = max(t['vcm cache 0.25x1'] - t['cache 0.25x1'], 0.0)
+        g = max((x1 - x0) / 0.75, 0.0)
+        e = max(x1 - g, 0.0)
+    for c in info['candidates']:
+        if 'light_paths' in c['settings'] and not c['timed']:
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
-            np.testing.assert_allclose(c['seconds_per_spp'], t[(1.0, 1)] + b * (n_l - 1) + d * (conn - 1), rtol=1e-6)
+            want_t = t['cache 1x1'] + b * (n_l - 1) + d * (conn - 1) + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
+            np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-6)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     # (up to the order of the light image's atomic additions, which varies from run to run)
     np.testing.assert_allclose(img, np.array(mi.render(scene, integrator=alone, spp=4, seed=5)),

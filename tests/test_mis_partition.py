@@ -144,15 +144,21 @@ def chain_free(k, s, P):
 
 def strategy_count(k, s, counts):
     """The sample count of strategy s on a path of k edges [Veach 9.2.2] (light vertex cache,
-    tests/test_light_cache.py: ``counts`` = (n_c, n_lt) per path; None: all 1): hits and emitter
-    sampling 1, connections n_c, light tracing (t=1) n_lt."""
+    tests/test_light_cache.py: ``counts`` = (n_c, n_lt) or (n_c, n_lt, n_m) per path; None: all
+    1): hits and emitter sampling 1, connections n_c, light tracing (t=1) n_lt."""
     if counts is None:
         return 1.0
-    n_c, n_lt = counts
+    n_c, n_lt = counts[:2]
     t = k + 1 - s
     if t == 1:
         return n_lt
     return n_c if s >= 2 else 1.0
+
+
+def merge_count(counts):
+    """The merges' count relative to eta (moments.py's merge family: ``counts`` (n_c, n_lt, n_m));
+    1 where ``counts`` has none."""
+    return 1.0 if counts is None or len(counts) < 3 else counts[2]
 
 
 def brute_force(kind, technique, P, p_lens=None, chains=False, counts=None):
@@ -202,7 +208,8 @@ def brute_force(kind, technique, P, p_lens=None, chains=False, counts=None):
         dens.append(np.where(ok, p, 0.0))
     if technique == 'vcm':
         dens += [np.where(merge_allowed(k, i, P, everywhere),
-                          raw[i + 1] * camera_density(P, i) * P['eta'] * merge_volume(P, i), 0.0)
+                          raw[i + 1] * camera_density(P, i) * P['eta'] * merge_volume(P, i)
+                          * merge_count(counts), 0.0)
                  for i in range(1, k)]
     dens = np.array(dens)
     if kind == 'uniform':
