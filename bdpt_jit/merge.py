@@ -169,7 +169,8 @@ class Merger:
         media_path.PathVertex) of the camera subpath ``sub`` of iteration ``group``
         (unnormalised); ``inv_factor``: mis.MIS.weight_merge's (scenes with media); ``tap``:
         (film position, scale to the film) of technique auto's pilot, whose moment film takes
-        each merge (moments.py)."""
+        each merge (moments.py). Returns (the merge's value, the moment film's per-candidate
+        terms of it: none without ``tap``)."""
         c, g = self.ctx, self.grid
         si = v.si
         st = g.store
@@ -200,10 +201,11 @@ class Merger:
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
         w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, inv_factor)
+        terms = ()
         if tap is not None:
             film_pos, scale = tap
-            c.moments.add(None, None, film_pos, value * (w * scale), value * scale, ok)
-        return dr.select(ok, value * w, 0.0)
+            terms = c.moments.add(None, None, film_pos, value * (w * scale), value * scale, ok)
+        return dr.select(ok, value * w, 0.0), terms
 
     @dr.syntax
     def gather(self, idx, v, sub, active, film_pos=None):
@@ -226,12 +228,21 @@ class Merger:
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))
+        # technique auto's pilot: per candidate, the sum of this vertex's merges and of their
+        # squares (moments.MomentFilm.add_cross; empty otherwise)
+        n_cand = 0 if tap is None else len(self.ctx.moments.counts)
+        sums = squares = (dr.zeros(mi.Float, dr.width(si.p)),) * n_cand
         # one iteration per entry of the 8 cells (empty cells cost nothing: ~2 entries a query
         # on the Cornell box, against 8 cell steps a query before)
         while dr.hint(active & (e < totals[8]), label='bdpt_merge'):
             k = starts[0] + e
             for q in range(1, 8):
                 k = dr.select(e >= totals[q], starts[q] + (e - totals[q]), k)
-            total += self.merge_one(k, v, sub, group, radius2, active, inv_factor, tap)
+            value, terms = self.merge_one(k, v, sub, group, radius2, active, inv_factor, tap)
+            total += value
+            sums = tuple(sums[q] + terms[q] for q in range(n_cand))
+            squares = tuple(squares[q] + terms[q] * terms[q] for q in range(n_cand))
             e += 1
+        if tap is not None:
+            self.ctx.moments.add_cross(film_pos, sums, squares, active)
         return sub.beta * total * norm

@@ -54,8 +54,10 @@ PARAMS = (
           'merging at the first non-specular camera vertex). `vcm` and `vm` are consistent, not '
           'unbiased: their bias vanishes as the merging radius shrinks over passes. `auto`: the most '
           'efficient of path tracing and bdpt\'s configurations (the classic estimator and light vertex '
-          'caches), by the second moments a pilot render estimates for each and their timed trials '
-          '(Grittmann et al. 2022; docs/light-cache.md); the choice in `last_render_info[\'auto\']`.',
+          'caches, with and without merging everywhere where the scene has a glossy or delta BSDF), by '
+          'the second moments a pilot render estimates for each and their timed trials (Grittmann et '
+          'al. 2022; docs/light-cache.md); the choice in `last_render_info[\'auto\']`; consistent, '
+          'as `vcm`, where it chose to merge.',
           choices=('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto')),
     Param('radius', float, 0.005,
           'Initial merging radius of `vcm` and `vm`, relative to the radius of the scene\'s bounding '

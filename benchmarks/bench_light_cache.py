@@ -6,7 +6,8 @@ relative MSE at equal time against a reference rendered by ``path`` (``--ref-int
         --res 128 --max-depth 10 --budget 8 --configs path,pt,classic,1:2,0.25:1,1:1,2:4
 
 A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
-``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``auto`` technique auto (its
+``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``vcm`` and ``vcm_all`` vertex
+merging (behind delta vertices; everywhere), ``auto`` technique auto (its
 choice, the pilot and the trials, inside the budget; the choice in the last column). Each contestant renders one
 warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
 passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
@@ -26,11 +27,17 @@ import mitsuba as mi
 import numpy as np
 
 
-def load(path, res, max_depth, integrator):
-    """The scene at res x res (whichever of $res, $resx/$resy it takes), with ``integrator``."""
+def load(path, res, max_depth, integrator, defines=()):
+    """The scene at res x res (whichever of $res, $resx/$resy it takes), with ``integrator``;
+    ``defines``: 'KEY=VALUE' strings for the scene's other parameters (--define)."""
     params = dict(res=res, resx=res, resy=res, max_depth=max_depth)
     text = open(path).read()
     kw = {k: v for k, v in params.items() if re.search(r'\$' + k + r'\b', text)}
+    for d in defines:
+        key, sep, value = d.partition('=')
+        if not sep or not re.search(r'\$' + re.escape(key) + r'\b', text):
+            raise SystemExit(f'bench_light_cache: --define {d!r}: the scene {path} has no parameter ${key}')
+        kw[key] = value
     scene = mi.load_file(path, **kw)
     return scene, mi.load_dict(integrator)
 
@@ -45,6 +52,8 @@ def contestant(name, max_depth):
         return {'type': 'bdpt', 'max_depth': max_depth}
     if name == 'auto':
         return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'auto'}
+    if name in ('vcm', 'vcm_all'):
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'merge_everywhere': name == 'vcm_all'}
     ratio, c = name.split(':')
     return {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': float(ratio),
             'connections': -1 if c == 'auto' else int(c)}
@@ -54,11 +63,11 @@ def reference(args):
     """``--ref-integrator`` (a configuration name; default Mitsuba's path) at --ref-spp, in batches
     of 64, cached by scene, resolution, depth and integrator."""
     key = hashlib.sha1(repr((os.path.abspath(args.scene), args.res, args.max_depth, args.ref_spp,
-                             args.ref_integrator, mi.__version__)).encode()).hexdigest()[:16]
+                             args.ref_integrator, mi.__version__) + tuple(args.define)).encode()).hexdigest()[:16]
     path = os.path.join(args.cache_dir, f'lc-ref-{key}.npy')
     if os.path.exists(path):
         return np.load(path)
-    scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth))
+    scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth), args.define)
     ref = long_render(scene, integ, args.ref_spp)
     os.makedirs(args.cache_dir, exist_ok=True)
     np.save(path, ref)
@@ -110,7 +119,7 @@ def equal_time_auto(scene, integ, budget, batch_spp, seed0=0):
 
 
 def measure(args, name, ref):
-    scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth))
+    scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth), args.define)
     t0 = time.perf_counter()
     dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
     warm = time.perf_counter() - t0
@@ -146,6 +155,8 @@ def main():
     ap.add_argument('--configs', default='path,pt,classic,1:1,0.25:1,2:4')
     ap.add_argument('--variant', default='llvm_ad_rgb')
     ap.add_argument('--cache-dir', default=os.path.join(os.path.dirname(__file__), 'cache'))
+    ap.add_argument('--define', action='append', default=[], metavar='KEY=VALUE',
+                    help="a scene parameter ($KEY), e.g. --define glass=rough (scenes/torus-in-glass.xml)")
     args = ap.parse_args()
     mi.set_variant(args.variant)
     import bdpt_jit  # noqa: F401  (registers bdpt)

@@ -64,28 +64,36 @@ def test_family_weights_with_merges_equal_the_brute_force(which, k, emitter, cam
 
 
 # ---------------------------------------------------------------------------- renders
-def pilot(scene, max_depth, counts, seed, spp=4):
-    """A pilot render (auto.py's: bdpt's classic estimator, balance heuristic, the moment film)."""
-    integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'mis': 'balance'})
+def pilot(scene, max_depth, counts, seed, spp=4, **props):
+    """A pilot render (auto.py's: bdpt's classic estimator, balance heuristic, the moment film;
+    ``props``: vcm merging everywhere, where auto offers merging)."""
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'mis': 'balance', **props})
     integ.moment_counts = counts
     img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed))
     return img, integ.moment_film.estimates(spp)
 
 
-@pytest.mark.parametrize('name', ['cornell', 'fog room'])
+VCM_ALL = {'technique': 'vcm', 'merge_everywhere': True}
+
+
+@pytest.mark.parametrize('name', ['cornell', 'fog room', 'caustic, merging'])
 def test_the_pilot_renders_the_classic_balance_image(name):
-    """With counts (1, 1) the family weights are the classic estimator's balance weights: the
+    """With counts (1, 1, 1) the family weights are the pilot's own balance weights: the
     pilot's image is bdpt's with mis=balance and the same seed, up to float32 rounding (a wrong
     family sum would move every pixel), and the moment film's image (nearest pixel) is the
-    film's (a box filter); in a scene with media too (the distance densities in the families)."""
-    D = 4 if name == 'cornell' else 3
-    scene = load_scene('cornell-box.xml', 16, D) if name == 'cornell' else mi.load_dict(media_scenes.fog_room(res=12))
-    img, (I, V, missed) = pilot(scene, D, [(0.0, 0.0), (1.0, 1.0)], seed=7)
-    ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': D, 'mis': 'balance'}),
+    film's (a box filter); in a scene with media too (the distance densities in the families),
+    and vcm's merging everywhere where auto offers merging (the merge family; the film takes each
+    merge: its image is the film's only if every merge reaches it)."""
+    D = 3 if name == 'fog room' else 4
+    props = VCM_ALL if 'merging' in name else {}
+    scene = (mi.load_dict(media_scenes.fog_room(res=12)) if name == 'fog room'
+             else load_scene('caustic.xml' if 'caustic' in name else 'cornell-box.xml', 16, D))
+    img, (I, V, missed) = pilot(scene, D, [(0.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 1.0, 1.0)], seed=7, **props)
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': D, 'mis': 'balance', **props}),
                              spp=4, seed=7))
     np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(I, img[..., :3].mean(axis=2).ravel(), rtol=1e-4, atol=1e-6)
-    assert np.all(np.isfinite(V)) and np.all(missed == 0.0)     # pt samples every path of this scene
+    assert np.all(np.isfinite(V)) and np.all(missed == 0.0)     # pt samples every path of these scenes
 
 
 def relmse(var, image):
@@ -108,6 +116,7 @@ def mean_and_error(values):
     ('pt', {'technique': 'pt'}),
     ('bdpt', {}),
     ('cache 1x4', {'light_paths': 1.0, 'connections': 4}),
+    ('vcm', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0}),
 ])
 def test_predicted_variance_agrees_with_the_rendered(name, props):
     """Issue 22's test 3: each candidate's variance predicted from the pilots' samples agrees
@@ -116,18 +125,23 @@ def test_predicted_variance_agrees_with_the_rendered(name, props):
     (I^2 + 0.01), here with one I for both (the rendered mean image: a pilot's own I is noisier).
     Within 4 standard errors of both plus 15% for what the prediction leaves out, the
     correlations between strategies that share a subpath (Grittmann et al. 2022 neglect them
-    too)."""
+    too). The merging candidate (vcm everywhere, a radius at which a gather finds several light
+    vertices, fixed over iterations: the pilot's 4 iterations and the renders' first then merge
+    alike) from a pilot that merges, as auto's does where it offers merging: there the products
+    of one camera vertex's merges with each other (MomentFilm.add_cross) are half the second
+    moment."""
     D = 4
     scene = load_scene('cornell-box.xml', 16, D)
     base = {'type': 'bdpt', 'max_depth': D, 'mis': 'balance', **props}
-    counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0)}.get(name)
+    pilot_props = props if name == 'vcm' else {}
+    counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0), 'vcm': (1.0, 1.0, 1.0)}.get(name)
     if counts is None:          # the cache's n_c = c / (V / n_L) of its own pilot light pass
         integ = mi.load_dict(base)
         mi.render(scene, integrator=integ, spp=1, seed=0)
         counts = (4.0 / integ.cache_run[0], 1.0)
     rendered, image = measured_variance(scene, base, 256, 5000)
     meas, meas_se = mean_and_error([relmse(v, image) for v in rendered])
-    pred, pred_se = mean_and_error([relmse(pilot(scene, D, [counts], seed=100 + k)[1][1][0], image)
+    pred, pred_se = mean_and_error([relmse(pilot(scene, D, [counts], seed=100 + k, **pilot_props)[1][1][0], image)
                                     for k in range(12)])
     bound = 0.15 * meas + 4 * np.hypot(pred_se, meas_se)
     assert abs(pred - meas) <= bound, f'{name}: predicted {pred:.4g} +- {pred_se:.2g}, rendered {meas:.4g} +- {meas_se:.2g}'
