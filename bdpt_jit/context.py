@@ -20,7 +20,7 @@ from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .sampling import Sampling
 from .scene_check import (UnsupportedSceneError, VertexNeeds, describe_medium, has_instances, media_info,
-                          scene_has_delta_bsdf, scene_media, scene_perturbs_normals)
+                          scene_has_delta_bsdf, scene_media, scene_refracts, scene_perturbs_normals)
 from .stats import MediumStats, RayStats
 from .store import record_type
 from .strategies import StrategySet
@@ -58,6 +58,7 @@ class Context:
     rr_depth           edges from which Russian roulette may end a subpath
     hide_emitters      directly visible emitters hidden
     has_delta          the scene has a BSDF with a delta lobe (delta handling traced)
+    refracts           the scene has a BSDF with a transmission lobe that refracts (scene_refracts)
     exact_adjoint      a BSDF perturbs its shading frame (connect.adjoint_eval)
     record             the light-vertex record type (store.record_type)
     diffuse            connect.DiffuseTable, or None when no BSDF is a constant diffuse
@@ -86,6 +87,7 @@ class Context:
         self.max_depth_edges = UNBOUNDED if self.unbounded else settings['max_depth']
         self.hide_emitters = settings['hide_emitters']
         self.has_delta = scene_has_delta_bsdf(scene)
+        self.refracts = scene_refracts(scene)
         merge_everywhere = bool(settings.get('merge_everywhere', False))
         technique = settings['technique']
         if technique == 'vcm' and not merge_everywhere and not self.has_delta:

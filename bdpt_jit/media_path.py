@@ -131,14 +131,16 @@ def sample_direction(ctx, mode, sampler, v, active, surface_sample):
     """The next direction at the PathVertex ``v``: ``surface_sample`` (transport's BSDF
     sampling, same arguments and results) in surface lanes, the phase function in medium lanes
     with the same two samples. Returns (pdf_fwd_w, factor, wo_world, pdf_rev_w, active,
-    is_delta or None, the samples)."""
+    is_delta or None, the samples, the relative index of refraction or None)."""
     m = v.in_medium
-    pdf_fwd, factor, wo, pdf_rev, ok, is_delta, u = surface_sample(ctx, mode, sampler, v.surf, active & ~m)
+    pdf_fwd, factor, wo, pdf_rev, ok, is_delta, u, eta = surface_sample(ctx, mode, sampler, v.surf, active & ~m)
     ph = v._phase().sample(mode, u[0], u[1], active & m)
     if is_delta is not None:
         is_delta = is_delta & ~m
+    if eta is not None:
+        eta = dr.select(m, 1.0, eta)
     return (dr.select(m, ph.pdf_w, pdf_fwd), mi.Spectrum(dr.select(m, ph.weight, factor)), dr.select(m, ph.wo, wo),
-            dr.select(m, ph.pdf_rev_w, pdf_rev), dr.select(m, ph.active, ok), is_delta, u)
+            dr.select(m, ph.pdf_rev_w, pdf_rev), dr.select(m, ph.active, ok), is_delta, u, eta)
 
 
 def sample_step(ctx, sampler, ray, medium, start, beta, active):

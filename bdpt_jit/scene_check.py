@@ -203,6 +203,15 @@ def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
     return False
 
 
+def scene_refracts(scene: mi.Scene) -> bool:
+    """True if any BSDF of the scene has a delta or glossy transmission lobe (a dielectric: the
+    camera subpaths' roulette then follows the refractions, transport.scatter)."""
+    if has_instances(scene):
+        return True
+    lobes = int(mi.BSDFFlags.DeltaTransmission) | int(mi.BSDFFlags.GlossyTransmission)
+    return any(int(s.bsdf().flags()) & lobes for s in scene.shapes() if s.bsdf() is not None)
+
+
 def scene_perturbs_normals(scene: mi.Scene) -> bool:
     """True if a BSDF of the scene perturbs the shading frame from the surface tangents
     (normal or bump map): light vertices then also store the tangents."""

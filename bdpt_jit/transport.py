@@ -50,7 +50,8 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
 def _sample(ctx, mode, sampler, v, active):
     """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (the direction's
     density per unit solid angle, the throughput factor, the outgoing direction in world space, the reverse density, active, the delta mask
-    or None, the samples)."""
+    or None, the samples, the relative index of refraction crossed (None where the scene does
+    not refract or the mode is importance: the roulette's, ``scatter``))."""
     si = v.si
     u1, u2 = sampler.next_1d(), sampler.next_2d()
     bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
@@ -66,7 +67,8 @@ def _sample(ctx, mode, sampler, v, active):
     exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta)
     if exact is not None:
         factor = dr.select(exact[0], exact[1], factor)
-    return bs.pdf, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2)
+    eta = bs.eta if (ctx.refracts and mode == RADIANCE) else None
+    return bs.pdf, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2), eta
 
 
 def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
@@ -75,9 +77,9 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
     the delta mask or None without delta lobes, the lobe and direction samples)."""
     if ctx.media is None:
-        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u = _sample(ctx, mode, sampler, v, sub.active)
+        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = _sample(ctx, mode, sampler, v, sub.active)
     else:       # a surface or a medium vertex (media_path.PathVertex)
-        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u = media_path.sample_direction(
+        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = media_path.sample_direction(
             ctx, mode, sampler, v, sub.active, _sample)
     beta = sub.beta * factor
     camera_side = mode == RADIANCE
@@ -88,10 +90,13 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
         active = active & (is_delta if is_delta is not None else False)
     if not camera_side and mis.camera_chains and is_delta is not None:
         active = active & ~is_delta      # delta chains are crossed from the camera side only (mis.py)
-    # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95)
-    beta, active = roulette(beta, sub.beta_start, sub.depth, ctx.rr_depth, active, sampler.next_1d())
+    # Russian roulette (as Mitsuba's path: from rr_depth on, survival <= 0.95, following the
+    # radiance throughput times eta^2 of the refractions so far: a radiance entering glass of
+    # index eta carries 1 / eta^2, which alone would end camera subpaths inside glass early)
+    beta_start = sub.beta_start if eta is None else sub.beta_start * dr.detach(dr.rcp(dr.square(eta)))
+    beta, active = roulette(beta, beta_start, sub.depth, ctx.rr_depth, active, sampler.next_1d())
     ray = v.spawn(wo_world)
-    return (dr.detach(ray) if ctx.ad else ray), Subpath(beta, sub.beta_start, st, sub.depth, active), is_delta, u
+    return (dr.detach(ray) if ctx.ad else ray), Subpath(beta, beta_start, st, sub.depth, active), is_delta, u
 
 
 def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
