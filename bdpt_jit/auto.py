@@ -69,13 +69,10 @@ def offers_merging(ctx):
     vertex and a camera vertex, as they do) and the scene has a BSDF with a glossy or delta lobe,
     or shapes this test cannot see (instances). Among diffuse surfaces only, a merge samples the
     paths that a connection samples with a density as good, and costs a gather."""
-    from .scene_check import has_instances
+    from .scene_check import scene_has_lobe
     if not ctx.strategies.trace_connect or ctx.ad:
         return False
-    if has_instances(ctx.scene):
-        return True
-    lobes = int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)
-    return any(int(s.bsdf().flags()) & lobes for s in ctx.scene.shapes() if s.bsdf() is not None)
+    return scene_has_lobe(ctx.scene, mi.BSDFFlags.Glossy, mi.BSDFFlags.Delta)
 
 
 def candidates(ctx, vpp):
@@ -169,8 +166,8 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     """(the chosen Trial, every Trial)."""
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
-    for tr in trials:
-        if tr.cache is None or tr.cache == TIMED_MERGING or (tr.cache in TIMED_CACHES and not tr.merges):
+    for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
+        if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
             time_trial(make, tr, scene, sensor, seed)
     cost_model(trials)
     while True:         # the best by the model is timed before it is chosen

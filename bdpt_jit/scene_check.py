@@ -192,24 +192,26 @@ def has_instances(scene: mi.Scene) -> bool:
     return any(str(s.class_name()) == 'Instance' for s in scene.shapes())
 
 
-def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
-    """True if any BSDF of the scene has a delta lobe (then the delta handling is traced)."""
+def scene_has_lobe(scene: mi.Scene, *lobes) -> bool:
+    """True if any BSDF of the scene has one of the ``lobes`` (mi.BSDFFlags), or the scene has
+    instances (whose BSDFs this test cannot see)."""
     if has_instances(scene):
         return True
-    for shape in scene.shapes():
-        bsdf = shape.bsdf()
-        if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta):
-            return True
-    return False
+    mask = 0
+    for lobe in lobes:
+        mask |= int(lobe)
+    return any(int(s.bsdf().flags()) & mask for s in scene.shapes() if s.bsdf() is not None)
+
+
+def scene_has_delta_bsdf(scene: mi.Scene) -> bool:
+    """True if any BSDF of the scene has a delta lobe (then the delta handling is traced)."""
+    return scene_has_lobe(scene, mi.BSDFFlags.Delta)
 
 
 def scene_refracts(scene: mi.Scene) -> bool:
     """True if any BSDF of the scene has a delta or glossy transmission lobe (a dielectric: the
     camera subpaths' roulette then follows the refractions, transport.scatter)."""
-    if has_instances(scene):
-        return True
-    lobes = int(mi.BSDFFlags.DeltaTransmission) | int(mi.BSDFFlags.GlossyTransmission)
-    return any(int(s.bsdf().flags()) & lobes for s in scene.shapes() if s.bsdf() is not None)
+    return scene_has_lobe(scene, mi.BSDFFlags.DeltaTransmission, mi.BSDFFlags.GlossyTransmission)
 
 
 def scene_perturbs_normals(scene: mi.Scene) -> bool:

@@ -67,7 +67,7 @@ def _sample(ctx, mode, sampler, v, active):
     exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta)
     if exact is not None:
         factor = dr.select(exact[0], exact[1], factor)
-    eta = bs.eta if (ctx.refracts and mode == RADIANCE) else None
+    eta = dr.select(bs.eta > 0, bs.eta, 1.0) if (ctx.refracts and mode == RADIANCE) else None
     return bs.pdf, factor, wo_world, pdf_rev_w, active, is_delta, (u1, u2), eta
 
 
