@@ -317,3 +317,76 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
 def test_auto_refuses_what_it_chooses_itself():
     with pytest.raises(Exception, match="chosen by technique 'auto'"):
         mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})
+
+
+def _stub_choice(monkeypatch, rel_var, times):
+    """auto.choose over the trials ``rel_var`` (name: predicted relMSE; names as auto.candidates
+    gives them) with the pilot stubbed and each trial render's kernel time the next of
+    ``times[name]`` (seconds per spp; the last repeats). Returns (the chosen, the trials by
+    name, the trial renders made, in order)."""
+    from bdpt_jit import auto
+    made = []
+    trials = [auto.Trial('pt', {'n': 'pt'}, (0.0, 0.0, 0.0)), auto.Trial('bdpt', {'n': 'bdpt'}, (1.0, 1.0, 0.0))]
+    trials += [auto.Trial(f'cache {lp:g}x{c}', {'n': f'cache {lp:g}x{c}'}, (c, lp, 0.0), (lp, c))
+               for lp in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
+
+    def pilot(make, trials, scene, sensor, seed):
+        for tr in trials:
+            tr.rel_var, tr.missed = rel_var.get(tr.name, 1.0), 0.0
+
+    def make(settings):             # the trial render: its kernels' time is the stub's
+        made.append(settings['n'])
+        return None
+
+    def kernel_seconds(render):
+        seq = times[made[-1]]
+        return seq[min(made.count(made[-1]) - 1, len(seq) - 1)] * auto.TRIAL_SPP
+
+    monkeypatch.setattr(auto, 'candidates', lambda ctx, vpp: trials)
+    monkeypatch.setattr(auto, 'pilot', pilot)
+    monkeypatch.setattr(auto, 'kernel_seconds', kernel_seconds)
+    best, _ = auto.choose(make, None, None, None, 0, 1.0)
+    return best, {tr.name: tr for tr in trials}, made
+
+
+def test_auto_times_close_calls_again(monkeypatch):
+    """A close call (the runner-up's efficiency within auto.CLOSE of the best's) is timed again
+    and decided by the least of each one's times: pt's first timing met another job's load (4x
+    its time), so the cache 1/4 x 1 led by 1.6x; pt's second timing, unloaded, wins. The cost
+    model is refitted from the times that fell (a stale model keeps the modelled caches' first
+    values), and no candidate is timed more than auto.TIMINGS times."""
+    from bdpt_jit import auto
+    # a later timing under load (5.0) does not undo an earlier one (1.0): the least counts
+    rel = {'pt': 0.11, 'cache 0.25x1': 0.11}
+    times = {'pt': [1.0, 5.0], 'bdpt': [3.0], 'cache 0.25x1': [1.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'pt' and by['pt'].seconds == 1.0 and by['pt'].timings == auto.TIMINGS
+    times = {'pt': [4.0, 1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5, 2.5, 2.5],
+             'cache 1x1': [3.0, 2.0], 'cache 1x4': [4.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'pt' and by['pt'].seconds == 1.0 and by['pt'].timings == 2
+    assert max(tr.timings for tr in by.values()) <= auto.TIMINGS
+    # a cost-model point in the close call: the cache 1 x 1's time falls 3.0 -> 1.5, so the model
+    # is b = max((1.5 - 2.5) / 0.75, 0) = 0, d = (4.0 - 1.5) / 3, a = 1.5 - d (stale: 2, 2/3, 1/3)
+    rel = {'bdpt': 0.12, 'cache 1x1': 0.11}
+    times = {'pt': [1.0], 'bdpt': [2.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0, 1.5], 'cache 1x4': [4.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'cache 1x1' and by['cache 1x1'].seconds == 1.5
+    assert by['cache 1x1'].timings == by['bdpt'].timings == auto.TIMINGS
+    d = 2.5 / 3.0
+    for lp in auto.LIGHT_PATHS:
+        for c in auto.CONNECTIONS:
+            tr = by[f'cache {lp:g}x{c}']
+            if not tr.timed:
+                assert np.isclose(tr.seconds, 1.5 - d + d * c), tr.name
+
+
+def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
+    """Where the best leads by more than auto.CLOSE, each cost-model point is timed once (and
+    the best, if it is modelled, once more before it is chosen): no re-timing."""
+    from bdpt_jit import auto
+    rel = {'pt': 0.01}
+    times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'pt'
+    assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
