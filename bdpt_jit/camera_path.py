@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import media_path, transport
+from .beams import Segment
 from .endpoints import AreaKinds
 from .jitmath import pdf_w_to_a, safe_div
 from .media import medium_at_sensor
@@ -182,7 +183,7 @@ class CameraTracer:
             pdf_cam_to_light_a, pdf_light_to_cam_a = pdf_cam_to_light_a * e.pdf_l_far, pdf_light_to_cam_a * e.pdf_l_near
         merge_y = None
         if e is not None and self.mis.merge_everywhere:     # media: a merge at y, relative to a surface's
-            merge_y = self.mis.merge_factor(y.in_medium)
+            merge_y = y.merge_factor(self.mis, c.media.info)
         w = self.mis.weight_connect(rec, sub.mis, pdf_cam_to_light_a, pdf_light_to_cam_a,
                                     pdf_l_rev_w, pdf_c_rev_w, merge_z, merge_y)
         self.add_layer(v_depth + 1, sub.depth + 1, contrib, w, ok)
@@ -235,6 +236,7 @@ class CameraTracer:
         c = self.ctx
         n, max_edges = self.ps.n, c.max_depth_edges
         film_pos, ray, beta = self.primary()
+        beta_lens = beta
         beta_start = None
         if c.media is None:
             si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
@@ -252,6 +254,8 @@ class CameraTracer:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
         self.film_pos = film_pos
         L = mi.Spectrum(0.0)
+        if self.ps.beams is not None and self.mis.merge_here_camera(False) is True:
+            L += self.first_beam(ray, si, beta_lens, film_pos)
         if c.strategies.trace_env:
             L += self.strategy_s0_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
                                       MISState(mi.Float(0), mi.Float(0)), ~si.is_valid() & (max_edges >= 1))
@@ -266,6 +270,34 @@ class CameraTracer:
         sub = Subpath(beta, dr.max(beta) if beta_start is None else beta_start, st, mi.UInt32(1),
                       si.is_valid() & (max_edges >= 1))
         return film_pos, ray, si, L, alpha, aov_values, sub
+
+    def first_beam(self, ray, hit, beta, film_pos):
+        """Merges along the camera ray's segment through media (beams.py; where a merge at the
+        first camera vertex is a strategy): ``beta``, the ray's weight, and the camera's MIS
+        state before the first edge."""
+        c, n = self.ctx, self.ps.n
+        d_vcm, d_vc = self.mis.camera_init(c.camera.pdf_w(ray.d))
+        zero = dr.zeros(mi.Float, n)
+        st = MISState(d_vcm + zero, d_vc + zero, zero, zero, zero)
+        sub = Subpath(beta, mi.Float(1.0), st, dr.zeros(mi.UInt32, n), dr.full(mi.Bool, True, n))
+        seg = Segment(None, ray, medium_at_sensor(c.sensor, n), self.segment_end(ray, hit), sub, True)
+        return self.ps.beams.gather(dr.arange(mi.UInt32, n), seg, sub.active, film_pos)
+
+    @staticmethod
+    def segment_end(ray, hit):
+        """Where the segment of ``ray`` that found the MediumHit ``hit`` ends (inf: nowhere)."""
+        return dr.select(hit.is_valid(), dr.norm(hit.p - ray.o), dr.inf)
+
+    segments = property(lambda self: self.ps.beams is not None)     # (transport.walk)
+
+    def segment(self, v, ray, hit, scattered, carry, was_delta):
+        """Merges along the segment from ``v`` to ``hit`` (beams.py), where a merge at a vertex
+        behind ``v`` is a strategy; ``scattered``: the Subpath after the scatter at ``v``."""
+        L, prev, prev_delta = carry
+        offered = self.mis.merge_here_camera(was_delta)
+        active = scattered.active if offered is True else scattered.active & offered
+        seg = Segment(v, ray, v.medium_towards(ray.d), self.segment_end(ray, hit), scattered, False)
+        return L + self.ps.beams.gather(self.idx, seg, active, self.film_pos), prev, prev_delta
 
     mode = RADIANCE
     label = 'bdpt_camera_subpath'
@@ -302,7 +334,7 @@ class CameraTracer:
         merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
         merge_mask = merge_here
         if c.media is not None and mis.mis_merges:       # media: relative to a surface merge
-            merge_here = mis.merge_factor(v.in_medium, merge_here)
+            merge_here = v.merge_factor(mis, c.media.info, merge_here)
         if c.strategies.trace_s1:
             L = L + self.strategy_s1(v, sub, smooth, merge_here)
         if c.strategies.trace_connect and ps.cache is not None:
@@ -310,6 +342,8 @@ class CameraTracer:
         elif c.strategies.trace_connect:
             L = L + self.connect_all(self.idx, v, sub, smooth, merge_here)
         if c.strategies.trace_merge:
+            if ps.beams is not None:      # inside media the segments merge (beams.py, ``segment``)
+                merge_mask = merge_mask & ~v.in_medium
             L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask, self.film_pos)
         return sub, (L, prev, prev_delta), merge_here
 

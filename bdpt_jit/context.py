@@ -109,6 +109,9 @@ class Context:
         self.rr_depth = settings['rr_depth']
         self.exact_adjoint = scene_perturbs_normals(scene)
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
+        # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
+        self.beams = (self.media is not None and self.strategies.trace_merge and self.media.info.gray
+                      and settings.get('media_merging', 'beams') == 'beams')
         self.record = record_type(VertexNeeds(scene), merging=self.mis.mis_merges, media=self.media is not None)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
         self.diffuse = None if ad else diffuse_table(scene)

@@ -19,6 +19,7 @@ from .context import Context
 from .film import FilmAccumulator
 from .light_cache import PILOT_PASS, LightCache, counts as cache_counts, pilot
 from .light_path import LightTracer
+from .beams import BeamGather, BeamGrid
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
                      count_passes, light_capacity, pass_seed, plan_passes)
@@ -184,6 +185,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 ps.cache = LightCache(ps.store, self.cache_run[1])
         if ctx.strategies.trace_merge:
             ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
+            if ctx.beams:
+                ps.beams = BeamGather(ctx, BeamGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last
         if ctx.strategies.camera_pass:
             CameraTracer(ctx, ps).trace()
@@ -228,7 +231,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
             if ctx.media is not None:                        # merges inside media: the ball's radius
                 radius = schedule.radius(schedule.group(dr.arange(mi.UInt32, n)))
-        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta, radius=radius))
+        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if ctx.light_cache is not None:
             self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))
@@ -273,6 +276,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             info['rays'] = ctx.stats.summary()
         if ctx.media is not None:
             info['media'] = {'heterogeneous': ctx.media.info.heterogeneous, 'chromatic': ctx.media.info.chromatic,
+                             'merging': None if not ctx.strategies.trace_merge else ('beams' if ctx.beams else 'points'),
                              **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}
         if ctx.light_cache is not None:
             vpp, c = self.cache_run

@@ -124,7 +124,7 @@ class LightTracer:
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
         else:       # media: the camera subpath reaches y with the edge's distance density there
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), v.cos(ds.d), dr.square(ds.dist)) * et.pdf_l_near
-        merge_y = self.mis.merge_factor(v.in_medium) if et is not None and self.mis.merge_everywhere else None
+        merge_y = v.merge_factor(self.mis, c.media.info) if et is not None and self.mis.merge_everywhere else None
         w = self.mis.weight_t1(sub.mis.d_vcm, sub.mis.d_vc, pdf_cam_a, pdf_rev_w, merge_y)
         value = sub.beta * f * tr * sensor_w * self.splat_scale
         if not isinstance(self.wl_weight, float):
@@ -146,6 +146,7 @@ class LightTracer:
     # ------------------------------------------------------------------ walk
     mode = IMPORTANCE
     label = 'bdpt_light_subpath'
+    segments = False            # (transport.walk: no beams on this side)
 
     def trace(self):
         """Trace the pass's light subpaths; splat the t=1 strategies; fill the pass's store.
@@ -191,7 +192,7 @@ class LightTracer:
             self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
         sub.active = sub.active & (sub.depth + 2 <= max_edges)
         if c.media is not None and self.mis.mis_merges:
-            return sub, (count,), self.mis.merge_factor(v.in_medium)    # (mis.MIS.scatter)
+            return sub, (count,), v.merge_factor(self.mis, c.media.info)
         return sub, (count,), True
 
     def after_step(self, ray, si, v, sub, carry, was_delta):

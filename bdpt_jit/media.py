@@ -52,10 +52,13 @@ class MediaInfo:
     """What the scene's media need, as plain Python values (trace-time constants):
     any (a medium anywhere), heterogeneous (one is not homogeneous: ratio and delta tracking
     traced), chromatic (a homogeneous medium's sigma_t differs between channels: a channel is
-    chosen per distance sample). Built by scene_check.media_info."""
+    chosen per distance sample), gray (every medium's sigma_t is the same in all channels, so a
+    point a distance-sampled ray passes has survived with the probability T: merging inside
+    media by beams, beams.py). Built by scene_check.media_info."""
 
-    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False):
+    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
+        self.gray = gray
 
 
 def has_medium(medium):
@@ -139,6 +142,10 @@ class DensityFactor:
 
     def __init__(self, sig_hom=None, sig_het=None):
         self.sig_hom, self.sig_het = sig_hom, sig_het
+
+    def sigma(self):
+        """The factor as one number (gray media: sigma_t at a medium vertex, 1 at a surface)."""
+        return mean(self.sig_hom) * self.sig_het
 
     @staticmethod
     def surface(width):
@@ -275,25 +282,31 @@ class MediumTracer:
             going = tent & (dr.max(tr) > 0)
         return tr, tmaj
 
-    def _segment_tr(self, ray, length, medium, sampler, active):
-        """(T estimate, exact homogeneous T, T_maj) of ``medium`` along ``ray`` over [0, length]."""
+    def _segment_tr(self, ray, length, medium, sampler, active, tracking=True):
+        """(T estimate, exact homogeneous T, T_maj) of ``medium`` along ``ray`` over [0, length]
+        (``tracking`` False: the densities only, T_maj for the estimate in heterogeneous parts)."""
         hom, het = self._kinds(medium, active)
         sigma_t = interaction_at(medium, ray, hom).sigma_t
         tr_hom = dr.select(hom, homogeneous_tr(sigma_t, length), 1.0)
         if het is None:
             return tr_hom, tr_hom, mi.Float(1.0)
+        if not tracking:
+            tmaj = majorant_transmittance(medium, ray, length, het)
+            return dr.select(het, tmaj, tr_hom), tr_hom, dr.select(het, tmaj, 1.0)
         tr_het, tmaj = self.ratio_track(ray, length, medium, sampler, het)
         return dr.select(het, tr_het, tr_hom), tr_hom, dr.select(het, tmaj, 1.0)
 
     @dr.syntax
-    def edge(self, ray, end, medium, sampler, active, medium_end=None):
+    def edge(self, ray, end, medium, sampler, active, medium_end=None, tracking=True):
         """The transmittance of the shadow ray ``ray`` (from a vertex in ``medium`` to the point
         ``end`` = (q, n_q, err_q), as rays.spawn_to takes it; None for a ray to infinity, towards
         an environment or directional emitter), crossing null interfaces (each
         a hit whose BSDF has the Null flag; the medium changes by medium_after) and stopping
         with 0 at any other surface. ``medium_end``: the medium the far end says it is in
         (None: not checked); where the walk arrives in another, the edge is not made (T = 0)
-        and counted as a medium inconsistency. Returns an EdgeTransmittance."""
+        and counted as a medium inconsistency. ``tracking`` False: only the distance densities
+        are needed (no ratio tracking; ``tr`` then holds T_maj in heterogeneous parts). Returns
+        an EdgeTransmittance."""
         n = dr.width(ray.o)
         tr, tr_hom, tmaj = dr.full(mi.Spectrum, 1.0, n), dr.full(mi.Spectrum, 1.0, n), dr.full(mi.Float, 1.0, n)
         ok, going, crossings = mi.Bool(active), mi.Bool(active), dr.zeros(mi.UInt32, n)
@@ -301,7 +314,7 @@ class MediumTracer:
         while going:
             si = self.scene.ray_intersect(ray, going)
             hit = going & si.is_valid()
-            seg = self._segment_tr(ray, dr.select(hit, si.t, ray.maxt), medium, sampler, going)
+            seg = self._segment_tr(ray, dr.select(hit, si.t, ray.maxt), medium, sampler, going, tracking)
             tr[going], tr_hom[going] = mi.Spectrum(tr * seg[0]), mi.Spectrum(tr_hom * seg[1])
             if self.info.heterogeneous:        # (homogeneous only: T_maj stays 1, a constant)
                 tmaj[going] = tmaj * seg[2]

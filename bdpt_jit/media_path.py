@@ -122,6 +122,10 @@ class PathVertex:
         """The vertex's media.DensityFactor: sigma_t at a medium vertex, (1, 1) at a surface."""
         return DensityFactor.at(info, self.mei.medium, self.mei.sigma_t, self.in_medium)
 
+    def merge_factor(self, mis, info, offered=True):
+        """A merge at this vertex relative to a surface merge (mis.MIS.merge_factor)."""
+        return mis.merge_factor(self.in_medium, offered, self.density_factor(info).sigma())
+
     def end(self):
         """The (point, normal, error) a shadow ray towards this vertex ends at (rays.spawn_to)."""
         return self.surf.si.p, self.surf.si.n, self.surf.err

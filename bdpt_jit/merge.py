@@ -223,7 +223,7 @@ class Merger:
         if self.ctx.media is not None:      # inside media: the ball, 4/3 pi r^3 N
             norm = dr.select(v.in_medium, norm * (0.75 / r), norm)
             if self.mis.mis_merges:         # (vm: no weights)
-                inv_factor = safe_div(1.0, self.mis.merge_factor(v.in_medium))
+                inv_factor = safe_div(1.0, v.merge_factor(self.mis, self.ctx.media.info))
         tap = None if self.ctx.moments is None else (film_pos, sub.beta * norm * self.ctx.inv_spp)
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)

@@ -30,11 +30,14 @@ medium vertex, T at a surface), and no cosine at a medium vertex (cos = 1). The 
 enter the running quantities through ``distance``; the strategies pass every density of a
 vertex sampled across their own edge with its ``pdf_l`` already in it (pdf_a = pdf_w |cos| /
 d^2 * pdf_l, eq. 9 with distance sampling), so the weights below read the same with and
-without media. A merge at a medium vertex gathers the light vertices in a ball (eta_vol =
-4/3 pi r^3 N, against pi r^2 N on a surface): the running quantities stay relative to a
-surface merge, and where a merge may be made the ``merge_*`` arguments carry, in scenes with
-media, that merge's factor (``merge_factor``: 1 on a surface, h(4 r / 3) at a medium vertex,
-0 where no merge is offered) instead of a mask.
+without media. A merge at a medium vertex y is a beam (beams.py: the camera ray's segment
+through the medium gathers the light vertices within r of it; its density relative to a
+surface merge's is 1 / sigma_t(y)) or, in media whose sigma_t differs between channels, a
+ball (eta_vol = 4/3 pi r^3 N, against pi r^2 N on a surface: 4 r / 3): the running
+quantities stay relative to a surface merge, and where a merge may be made the ``merge_*``
+arguments carry, in scenes with media, that merge's factor (``merge_factor``: 1 on a
+surface, h(1 / sigma_t) or h(4 r / 3) at a medium vertex, 0 where no merge is offered)
+instead of a mask.
 
 Conventions for the strategies (s light vertices, t camera vertices, endpoints counted):
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
@@ -152,6 +155,7 @@ class MIS:
         self.merge_unit = 1.0         # a merge's own term in d_vm (moments.FamilyMIS: the merge family)
         self.vc_factor = 0.0          # h(1/eta)
         self.vol_factor = None        # h(eta_vol / eta): a merge at a medium vertex (for_pass; media)
+        self.beams = False            # merges at medium vertices are beams (set_volume; media)
         self.mis_merges = strategies.merges and not strategies.ppm
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
         self.merge_everywhere = merge_everywhere
@@ -161,16 +165,17 @@ class MIS:
         self.n_c = None               # connections per camera vertex: c n_L / V (set_counts)
         self.n_lt = None              # light subpaths per camera sample: n_L / n (set_counts)
 
-    def for_pass(self, eta=None, counts=None, radius=None):
+    def for_pass(self, eta=None, counts=None, radius=None, beams=False):
         """This MIS with the pass's eta = pi r^2 N (merges; None: no merges), the light vertex
         cache's sample counts (n_c, n_lt) (None: the classic estimator) and, in scenes with
-        media, the merging ``radius`` r (merges inside media: ``set_volume``): a copy, so that
-        per-pass values travel with the pass and the Context's MIS is never written."""
+        media, the merging ``radius`` r and whether merges inside media are ``beams``
+        (``set_volume``): a copy, so that per-pass values travel with the pass and the Context's
+        MIS is never written."""
         out = copy.copy(self)
         if eta is not None:
             out.set_radius(eta)
         if radius is not None:
-            out.set_volume(radius)
+            out.set_volume(radius, beams)
         if counts is not None:
             out.set_counts(*counts)
         return out
@@ -197,21 +202,30 @@ class MIS:
         has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
         self.vc_factor = self.h(1.0 / eta) if has_vc else 0.0               # [VCM (20)] n_VC = 1
 
-    def set_volume(self, radius):
-        """Merges inside media (media scenes only): a merge at a medium vertex gathers the light
-        vertices in the ball of radius r, eta_vol = 4/3 pi r^3 N against eta = pi r^2 N on a
-        surface [UPBP: Krivanek et al. 2014, point-point 3D]: its density relative to a surface
-        merge's is eta_vol / eta = 4 r / 3 (per unit length: densities at medium vertices are per
-        unit volume). The running quantities stay relative to a surface merge; a medium vertex's
-        merge enters them with this factor (``merge_factor``)."""
+    def set_volume(self, radius, beams=False):
+        """Merges inside media (media scenes only), relative to a surface merge (eta = pi r^2 N;
+        per unit length: densities at medium vertices are per unit volume). The running
+        quantities stay relative to a surface merge; a medium vertex's merge enters them with
+        its factor (``merge_factor``).
+        - ``beams`` (beams.py): the camera subpath's segment leaving z gathers y within r of
+          it, wherever it passes y (probability T(z, y) for a short beam in a gray medium) with
+          eta = pi r^2 N, where the camera sampling y itself has the density sigma_t T: relative,
+          1 / sigma_t(y) [UPBP: Krivanek et al. 2014, point-beam 2D with short query beams];
+        - else a ball of radius r around the camera vertex, eta_vol = 4/3 pi r^3 N: 4 r / 3
+          [UPBP, point-point 3D]."""
         if self.mis_merges:
-            self.vol_factor = self.h(radius * (4.0 / 3.0))                  # [UPBP] eta_vol / eta
+            self.beams = beams
+            self.vol_factor = None if beams else self.h(radius * (4.0 / 3.0))    # [UPBP] eta_vol / eta
 
-    def merge_factor(self, in_medium, offered=True):
+    def merge_factor(self, in_medium, offered=True, sigma=None):
         """A vertex's merge relative to a surface merge, for the ``merge_*`` arguments in scenes
         with media: 0 where no merge is offered (``offered``, a mask or True), the volume
-        factor at a medium vertex, 1 on a surface."""
-        vol = self.vol_factor if self.vol_factor is not None else 0.0     # (no merges: unused)
+        factor at a medium vertex (beams: h(1 / ``sigma``), the vertex's
+        media.DensityFactor.sigma), 1 on a surface."""
+        if self.beams:
+            vol = self.h(dr.select(sigma > 0, dr.rcp(sigma), 0.0))        # [UPBP] point-beam: 1 / sigma_t
+        else:
+            vol = self.vol_factor if self.vol_factor is not None else 0.0     # (no merges: unused)
         f = dr.select(in_medium, vol, 1.0)
         return f if offered is True else dr.select(offered, f, 0.0)
 

@@ -74,6 +74,12 @@ PARAMS = (
           'the specular-diffuse-specular paths that no connection samples all pass there, and a '
           'merge elsewhere only adds a gather beside a connection (in a scene without specular '
           'surfaces `vcm` then renders as `bdpt`). The MIS weights follow either choice.'),
+    Param('media_merging', str, 'beams',
+          '`vcm` and `vm` inside participating media: `beams` (each camera segment through a medium '
+          'gathers the light vertices within the radius of it: Jarosz et al. 2011, point-beam 2D) or '
+          '`points` (a ball around each camera vertex in a medium: point-point 3D). Beams need media whose '
+          'sigma_t is the same in every channel; elsewhere merges are points (docs/media.md).',
+          choices=('beams', 'points')),
     Param('light_paths', float, -1.0,
           'Light vertex cache (Davidovic et al. 2014): light subpaths a pass traces, as a ratio of its '
           'camera samples (e.g. 0.25, 1, 2; rounded to whole subpaths per pixel of an iteration); '

@@ -124,6 +124,7 @@ class PassState:
         self.store = None               # store.LightStore of the light vertices, or None
         self.schedule = None            # merge.MergeSchedule of the pass's iterations (vcm, vm), or None
         self.merger = None              # merge.Merger (vcm, vm), or None
+        self.beams = None               # beams.BeamGather (vcm, vm, gray media), or None
         self.n_light = n                # light subpaths of the pass (the light vertex cache: n_L)
         self.light_sampler = sampler    # their sampler (the cache: its own, seeded for n_L)
         self.splat_scale = None         # the light image's scale per splat, or None: the Context's

@@ -314,11 +314,35 @@ def _chromatic(medium) -> bool:
     return bool(np.ptp(sigma_t) > 0)
 
 
+def _gray(medium) -> bool:
+    """Whether the medium's sigma_t is the same in every channel everywhere (then distance
+    sampling's survival probability is the transmittance itself, which beam merging needs:
+    beams.py). Homogeneous: ``_chromatic``; heterogeneous: its sigma_t volume's values (a grid's
+    channels, a constant's value), False where they cannot be read."""
+    if mi.is_monochromatic:
+        return True
+    if medium.is_homogeneous():
+        return not _chromatic(medium)
+    try:
+        params = mi.traverse(medium)
+        keys = [k for k in params.keys() if k.startswith('sigma_t.')]
+    except Exception:       # (a medium plugin without traversable parameters)
+        return False
+    for k in keys:
+        a = np.array(params[k], dtype=np.float64)
+        a = a.reshape(-1, a.shape[-1]) if (k.endswith('.data') and a.ndim > 1) else a.reshape(1, -1)
+        if a.shape[1] > 1 and np.ptp(a, axis=1).max() > 0:
+            return False
+    return bool(keys)
+
+
 def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
     """media.MediaInfo of the scene: whether it has media, a heterogeneous one (ratio and delta
-    tracking traced), a chromatic homogeneous one (a channel chosen per distance sample)."""
+    tracking traced), a chromatic homogeneous one (a channel chosen per distance sample), and
+    whether every medium is gray (beam merging: beams.py)."""
     from .media import MediaInfo
     media = scene_media(scene, sensor)
     return MediaInfo(any_medium=bool(media),
                      heterogeneous=any(not m.is_homogeneous() for m in media),
-                     chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media))
+                     chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media),
+                     gray=all(_gray(m) for m in media))

@@ -103,17 +103,20 @@ def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
     """Scatter at ``v`` and find the next vertex (in a differentiable pass a material point,
     the edge's derivative in the throughput: gradients.py). Returns (the ray, the next hit, the
     Subpath, the squared edge length between the two vertices, whether ``v`` scattered through
-    a delta lobe). The hit is not yet accounted for: ``arrive`` does that."""
+    a delta lobe, and with media the Subpath after the scatter, before the distance step (None
+    without). The hit is not yet accounted for: ``arrive`` does that."""
     ray, sub, is_delta, u = scatter(ctx, mis, mode, sampler, v, sub, merge_here)
+    scattered = None
     if ctx.media is None:
         si_next, beta, dist2 = ctx.sampling.next_vertex(mode == RADIANCE, v, ray, u, is_delta, sub.beta, sub.active)
         sub.beta = beta
     else:       # distance sampling: a medium vertex or a surface (media_path.MediumHit)
+        scattered = Subpath(sub.beta, sub.beta_start, sub.mis, sub.depth, sub.active)
         si_next, sub, dist2 = media_path.next_vertex(ctx, mis, sampler, v, ray, sub)
     if ctx.stats is not None:
         ctx.stats.ray('camera' if mode == RADIANCE else 'light', sub.active, si_next.is_valid())
     was_delta = is_delta if is_delta is not None else mi.Bool(False)
-    return ray, si_next, sub, dist2, was_delta
+    return ray, si_next, sub, dist2, was_delta, scattered
 
 
 def arrive(mis, mode, sub, si, ray, dist2):
@@ -138,6 +141,8 @@ def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
         vertex(si, ray)      the vertex.Vertex at a hit
         at_vertex(v, ray, sub, carry) -> (sub, carry, merge_here)   its strategies at v
         after_step(ray, si, v, sub, carry, was_delta) -> carry  what follows the step (before the hit counts)
+        segment(v, ray, si, scattered, carry, was_delta) -> carry  with media, where ``segments``:
+                             the step's segment (beams.py; ``scattered``: the Subpath before the step)
 
     ``carry``: the tracer's own loop state (a tuple of Dr.Jit values). Returns (si, sub, carry)
     where the walk stopped. ``sampler`` is named here so that its state is loop state."""
@@ -145,7 +150,9 @@ def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
     while dr.hint(tracer.go_on(sub, carry), label=tracer.label):
         v = tracer.vertex(si, ray)
         sub, carry, merge_here = tracer.at_vertex(v, ray, sub, carry)
-        ray, si, sub, dist2, was_delta = advance(ctx, mis, mode, sampler, v, sub, merge_here)
+        ray, si, sub, dist2, was_delta, scattered = advance(ctx, mis, mode, sampler, v, sub, merge_here)
+        if scattered is not None and tracer.segments:
+            carry = tracer.segment(v, ray, si, scattered, carry, was_delta)
         carry = tracer.after_step(ray, si, v, sub, carry, was_delta)
         sub = arrive(mis, mode, sub, si, ray, dist2)
     return si, sub, carry

@@ -83,6 +83,7 @@ def random_paths(rng, k, delta_prob, emitter='area', media=False):
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
         eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
         radius=10.0 ** rng.uniform(-3, 1, size=M),         # r (media: a merge at a medium vertex has 4/3 pi r^3 N)
+        sigma=10.0 ** rng.uniform(-3, 3, size=(M, k + 1)),  # sigma_t at x_i (media, beams: a merge there is 1 / sigma_t)
         emitter=emitter, media=media, lf=lf, lb=lb, med=med,
     )
 
@@ -124,8 +125,10 @@ def merge_allowed(k, i, P, everywhere=False):
 
 
 def merge_volume(P, i):
-    """A merge at x_i relative to a surface merge: eta_vol / eta = 4 r / 3 at a medium vertex."""
-    return np.where(P['med'][:, i], 4.0 * P['radius'] / 3.0, 1.0)
+    """A merge at x_i relative to a surface merge at a medium vertex: a ball, eta_vol / eta =
+    4 r / 3; a beam (``P['beams']``), P(s) / (sigma_t T) = 1 / sigma_t(x_i) (beams.py)."""
+    vol = 1.0 / P['sigma'][:, i] if P.get('beams') else 4.0 * P['radius'] / 3.0
+    return np.where(P['med'][:, i], vol, 1.0)
 
 
 def camera_density(P, i):
@@ -256,7 +259,7 @@ def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
 
     mis.set_radius(F(P['eta']))
     if P.get('media', False):
-        mis.set_volume(F(P['radius']))
+        mis.set_volume(F(P['radius']), beams=bool(P.get('beams')))
     if counts is not None:
         mis.set_counts(F(counts[0]), F(counts[1]))
 
@@ -271,7 +274,7 @@ def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
     def surface(here, i):                    # media: a merge at x_i relative to a surface merge
         if not media or here is False:
             return here
-        return mis.merge_factor(B(P['med'][:, i]), here)
+        return mis.merge_factor(B(P['med'][:, i]), here, F(P['sigma'][:, i]))
 
     def light_state(last):                                   # at x_last (last >= 1): (d_vcm, d_vc, d_vm)
         d2_0 = np.ones(M) if infinite else d2[:, 0]
@@ -348,7 +351,7 @@ def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
         for i in range(1, k):                                # merging at x_i
             l_vcm, _, l_vm = light_state(i)
             c_vcm, _, c_vm = camera_state(i)
-            inv_factor = 1.0 / mis.merge_factor(B(P['med'][:, i])) if media else None
+            inv_factor = 1.0 / mis.merge_factor(B(P['med'][:, i]), True, F(P['sigma'][:, i])) if media else None
             w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i]), inv_factor),
                          dtype=np.float64)
             out.append(np.where(merge_allowed(k, i, P, everywhere), w, 0.0))
@@ -418,19 +421,25 @@ def test_camera_chains_partition_of_unity(k, emitter, kind):
     np.testing.assert_allclose(w_rec, w_ref, rtol=1e-5, atol=1e-7)
 
 
+MEDIA_CASES = [(t, m) for t in ('bdpt', 'pt', 'lt', 'vcm', 'vcm_all') for m in ('points', 'beams')
+               if m == 'points' or t.startswith('vcm')]
+
+
 @pytest.mark.parametrize('camera', ['pinhole', 'delta'])
 @pytest.mark.parametrize('emitter', KINDS)
-@pytest.mark.parametrize('technique', ['bdpt', 'pt', 'lt', 'vcm', 'vcm_all'])
+@pytest.mark.parametrize('technique,merging', MEDIA_CASES)
 @pytest.mark.parametrize('kind', ['power', 'balance', 'uniform'])
 @pytest.mark.parametrize('k', [1, 2, 3, 5, 8])
-def test_weights_partition_of_unity_with_media(k, kind, technique, emitter, camera):
+def test_weights_partition_of_unity_with_media(k, kind, technique, merging, emitter, camera):
     """Paths with medium vertices (cosine 1, phase-function densities) and every edge
     distance-sampled (random forward and reverse distance densities, mis.MIS.distance and the
     strategies' pdf_l): the recursive weights equal the brute force's and sum to 1 (issue 23,
-    test 3). vcm merges inside media too, in a ball (4/3 pi r^3 N: mis.MIS.set_volume)."""
+    test 3). vcm merges inside media too: in a ball (4/3 pi r^3 N) or along beams (1 / sigma_t
+    of the vertex relative to a surface merge; mis.MIS.set_volume)."""
     rng = np.random.default_rng(7000 + 1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=True)
     P['camera'] = camera
+    P['beams'] = merging == 'beams'
     if camera == 'delta' and technique == 'lt':
         return
     w_rec = recursive(kind, technique, P)

@@ -1,0 +1,120 @@
+"""Merging inside media by beams (bdpt_jit/beams.py): the grid walk finds each light vertex
+within r of a camera segment once, the strategy's MIS factor reaches the kernels, and the
+choice between beams and balls follows the scene's media. The estimate's value is checked by
+the renders of tests/test_media_render.py (vm and vcm against volpath, the white furnace),
+its weights by tests/test_mis_partition.py (beams: 1 / sigma_t of the vertex)."""
+
+from types import SimpleNamespace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from bdpt_jit.beams import BeamGather, BeamGrid, Segment
+from bdpt_jit.merge import MergeSchedule, scene_radius
+from bdpt_jit.store import LightStore, make_record_type
+
+SPP_PASS = 2        # iterations in the pass: sample / light subpath idx belongs to idx % 2
+
+
+def random_store(rng, n, levels=2):
+    """A store of ``n`` light subpaths with up to ``levels`` vertices each, uniform in [-1, 1]^3
+    (80% of them medium vertices). Returns (the store, its vertices as numpy: p, path, valid)."""
+    record = make_record_type(['p', 'beta', 'd_vcm', 'd_vc', 'medium', 'in_medium'])
+    store = LightStore(n=n, capacity=levels, record=record)
+    count = rng.integers(0, levels + 1, size=n)
+    ps, paths, valid = [], [], []
+    for level in range(levels):
+        p = rng.uniform(-1, 1, size=(n, 3))
+        med = rng.uniform(size=n) < 0.8
+        rec = record()
+        rec.p = mi.Point3f(*[mi.Float(p[:, i]) for i in range(3)])
+        rec.beta, rec.d_vcm, rec.d_vc = mi.Spectrum(1.0), mi.Float(0.0), mi.Float(0.0)
+        rec.medium = dr.zeros(mi.MediumPtr, n)
+        rec.in_medium = mi.UInt32(med.astype(np.uint32))
+        idx = dr.arange(mi.UInt32, n)
+        record.store(store.v, rec, store.slot(mi.UInt32(level), idx), mi.Bool(level < count))
+        ps.append(p)
+        paths.append(np.arange(n))
+        valid.append(med & (level < count))
+    store.count = mi.UInt32(count.astype(np.uint32))
+    dr.eval(store.v, store.count)
+    return store, (np.concatenate(ps), np.concatenate(paths), np.concatenate(valid))
+
+
+def counting(self, k, interval, seg, group_r2, active, tap=None):
+    """BeamGather.merge_one replaced by 1 for every entry the walk counts."""
+    ok = self.candidate(k, interval, seg, group_r2, active)[0]
+    return dr.select(ok, mi.Spectrum(1.0), 0.0), ()
+
+
+@pytest.mark.parametrize('n,radius_rel', [(40000, 0.03), (3000, 0.03), (60, 0.2)])
+def test_each_light_vertex_within_r_of_a_segment_counts_once(monkeypatch, n, radius_rel):
+    """Random segments (inside and outside the vertices' box, ending or infinite) against random
+    light vertices of two iterations: the walk's count for each segment lies between the brute
+    force's count of vertices clearly within r of it (margins of 1e-4 r and 1e-4 along it, for
+    float32) and of those loosely within: never a vertex twice (cells of 2 r, n = 40000; wider
+    cells where vertices are sparse, n = 3000; a radius near the cells, n = 60)."""
+    rng = np.random.default_rng(n)
+    scene = mi.load_dict({'type': 'scene', 'box': {'type': 'cube'}})
+    store, (p, path, valid) = random_store(rng, n)
+    schedule = MergeSchedule(scene, radius_rel, 1.0, 1, SPP_PASS, n // SPP_PASS)
+    r = radius_rel * scene_radius(scene)
+    grid = BeamGrid(scene, store, schedule)
+    monkeypatch.setattr(BeamGather, 'merge_one', counting)
+    gather = BeamGather(SimpleNamespace(moments=None), grid, None)
+
+    m = 400
+    o = rng.uniform(-1.6, 1.6, size=(m, 3))
+    d = rng.normal(size=(m, 3))
+    d[: m // 8, 1:] = 0.0                           # some along an axis (the walk's flat axes)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t_end = np.where(rng.uniform(size=m) < 0.2, np.inf, rng.uniform(0, 3, size=m))
+    F = lambda a: mi.Float(a.astype(np.float32))       # noqa: E731
+    ray = mi.Ray3f(mi.Point3f(*[F(o[:, i]) for i in range(3)]), mi.Vector3f(*[F(d[:, i]) for i in range(3)]))
+    seg = Segment(None, ray, None, F(t_end), SimpleNamespace(beta=mi.Spectrum(1.0)), True)
+    got = np.array(gather.gather(dr.arange(mi.UInt32, m), seg, dr.full(mi.Bool, True, m)).x)
+    got = got * np.pi * r * r * (n // SPP_PASS)     # the estimate's 1 / (pi r^2 N) taken out
+
+    lo, hi = [], []
+    for j in range(m):
+        mine = valid & (path % SPP_PASS == j % SPP_PASS)
+        s = (p - o[j]) @ d[j]
+        dist2 = np.sum((p - o[j] - s[:, None] * d[j]) ** 2, axis=1)
+        lo.append(np.sum(mine & (s > 1e-4) & (s < t_end[j] - 1e-4) & (dist2 < r * r * (1 - 1e-4))))
+        hi.append(np.sum(mine & (s > -1e-4) & (s < t_end[j] + 1e-4) & (dist2 < r * r * (1 + 1e-4))))
+    lo, hi = np.array(lo), np.array(hi)
+    assert hi.sum() > 100, 'too few vertices near the segments for the test to mean anything'
+    assert np.all(np.abs(got - np.round(got)) < 1e-3), got
+    got = np.round(got)
+    bad = np.nonzero((got < lo) | (got > hi))[0]
+    assert bad.size == 0, f'segments {bad[:5]}: counted {got[bad[:5]]}, brute force {lo[bad[:5]]}..{hi[bad[:5]]}'
+
+
+def test_beams_where_media_are_gray_and_balls_where_chromatic():
+    """last_render_info['media']['merging']: beams in gray fog (vcm and vm), balls where a
+    medium's sigma_t differs between channels (the juice in the glass), and with
+    media_merging = points; None for a technique that does not merge."""
+    from test_media_render import SCENES
+    cases = [('fog-area', 'vcm', {}, 'beams'), ('fog-area', 'vm', {}, 'beams'),
+             ('fog-area', 'vcm', {'media_merging': 'points'}, 'points'),
+             ('glass-juice', 'vcm', {}, 'points'), ('fog-area', 'bdpt', {}, None)]
+    for name, technique, extra, expected in cases:
+        integ = mi.load_dict({'type': 'bdpt', 'technique': technique, 'max_depth': 4, 'merge_everywhere': True,
+                              **extra})
+        mi.render(mi.load_dict(SCENES[name]()), integrator=integ, spp=1)
+        assert integ.last_render_info['media']['merging'] == expected, (name, technique, extra)
+
+
+def test_gray_heterogeneous_grids_are_told_apart():
+    """scene_check._gray on heterogeneous media: a one-channel grid and an RGB grid with equal
+    channels are gray, an RGB grid with unequal ones is not."""
+    from bdpt_jit.scene_check import _gray
+    g = np.ones((2, 2, 2, 3), dtype=np.float32)
+    chroma = g.copy()
+    chroma[1, 1, 1, 2] = 0.5
+    for data, expected in [(np.ones((2, 2, 2, 1), dtype=np.float32), True), (g, True), (chroma, False)]:
+        medium = mi.load_dict({'type': 'heterogeneous',
+                               'sigma_t': {'type': 'gridvolume', 'grid': mi.VolumeGrid(data)}})
+        assert _gray(medium) == expected, data.shape
