@@ -60,21 +60,33 @@ class BeamGrid:
         n_slots = store.n * store.capacity
         bbox = scene.bbox()
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
-        slot = dr.arange(mi.UInt32, n_slots)
-        level = slot // store.n_opaque
-        idx = slot - level * store.n_opaque
-        valid = level < dr.gather(mi.UInt32, store.count, idx)
-        rec = store.record.load(store.v, slot, valid)
-        valid &= rec.in_medium != 0
+        slot = self.medium_slots(store, n_slots)       # (a few of the slots: compacted first)
+        empty = dr.width(slot) == 0
+        if empty:                   # no medium vertex: one masked-off entry (slot 0 is allocated)
+            slot = mi.UInt32([0])
+        idx = slot - (slot // store.n_opaque) * store.n_opaque
+        first = dr.gather(mi.Vector4f, store.v, slot * store.record.packets())    # 'p' leads every record
+        p = mi.Point3f(first.x, first.y, first.z)
         group = schedule.group(idx)
         r = schedule.radius(group)
-        self.bounds(rec.p, r, valid)
-        self.size = dr.opaque(mi.Float, self.cell_size(bbox, schedule, valid))
-        size = 1               # buckets: twice the slots (8 entries each at most)
-        while size < max(2 * n_slots, 1):
+        valid = dr.full(mi.Bool, not empty, dr.width(slot))
+        self.bounds(p, r, valid)
+        self.size = dr.opaque(mi.Float, self.cell_size(bbox, schedule, dr.width(slot)))
+        size = 1               # buckets: at least four per vertex (up to 8 entries each, ~1-2 typically)
+        while size < max(4 * dr.width(slot), 1):
             size *= 2
         self.mask = dr.opaque(mi.UInt32, size - 1)
-        self.sort(rec.p, r, group, valid, size)
+        self.sort(p, r, group, slot, valid, size)
+
+    @staticmethod
+    def medium_slots(store, n_slots):
+        """The slots of the store that hold a medium vertex (only their in_medium word read)."""
+        slot = dr.arange(mi.UInt32, n_slots)
+        level = slot // store.n_opaque
+        valid = level < dr.gather(mi.UInt32, store.count, slot - level * store.n_opaque)
+        word = slot * (store.record.packets() * 4) + store.record.word_of('in_medium')
+        valid &= dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, store.v, word, valid)) != 0
+        return dr.compress(valid)
 
     def bounds(self, p, r, valid):
         """lo, hi: the box around every valid vertex's ball (empty where there is none)."""
@@ -83,20 +95,21 @@ class BeamGrid:
         self.hi = mi.Point3f(*[dr.max(dr.select(valid, p[i] + r, -big)) for i in range(3)])
         dr.eval(self.lo, self.hi)
 
-    def cell_size(self, bbox, schedule, valid):
+    def cell_size(self, bbox, schedule, count):
         """At least 2 r (the pass's first, largest radius); (V / 2 n)^(1/3) for the n vertices of
-        an iteration in the volume V of their box, where that is larger."""
-        n = max(int(dr.count(valid)[0]) / max(int(schedule.spp_pass[0]), 1), 1.0)
+        an iteration (``count`` in the pass) in the volume V of their box, where that is larger."""
+        n = max(count / max(int(schedule.spp_pass[0]), 1), 1.0)
         ext = [max(float(self.hi[i][0] - self.lo[i][0]), 0.0) for i in range(3)]
         volume = max(ext[0] * ext[1] * ext[2], 1e-30)
         return max(2.0 * schedule.r1 * float(schedule.first[0]) ** (0.5 * (schedule.alpha - 1.0)),
                    (volume / (2.0 * n)) ** (1.0 / 3.0))
 
-    def sort(self, p, r, group, valid, size):
-        """The counting sort (as merge.PhotonGrid's) of the entries (vertex, corner q < 8): the
-        corner's cell on each axis is the cell of p - r (bit clear) or of p + r (bit set), an entry
-        only where that differs or the bit is clear, and where no earlier corner has its bucket."""
-        n_slots = dr.width(valid)
+    def sort(self, p, r, group, slot, valid, size):
+        """The counting sort (as merge.PhotonGrid's) of the entries (vertex, corner q < 8) of the
+        medium vertices at ``slot``: the corner's cell on each axis is the cell of p - r (bit
+        clear) or of p + r (bit set), an entry only where that differs or the bit is clear, and
+        where no earlier corner has its bucket."""
+        n = dr.width(slot)
         c_lo, c_hi = self.cell(p - r), self.cell(p + r)
         buckets, use = [], []
         for q in range(8):
@@ -117,8 +130,7 @@ class BeamGrid:
             places.append(dr.scatter_inc(counts, b, ok))
             dr.eval(places[-1])
         self.start = dr.prefix_sum(counts)
-        self.slots = dr.zeros(mi.UInt32, max(8 * n_slots, 1))
-        slot = dr.arange(mi.UInt32, n_slots)
+        self.slots = dr.zeros(mi.UInt32, max(8 * n, 1))
         for b, ok, place in zip(buckets, use, places):
             dr.scatter(self.slots, slot, dr.gather(mi.UInt32, self.start, b, ok) + place, ok)
         dr.eval(self.start, self.slots)
@@ -266,11 +278,23 @@ class BeamGather:
         ok &= dr.squared_norm(y_p - q) <= r2
         return ok, slot, level, y_p, (q, s)
 
+    @dr.syntax
     def merge_one(self, k, interval, seg, group_r2, active, tap=None):
         """Entry ``k`` of the grid merged with the segment (``candidate``'s arguments).
-        Returns (the value, unnormalised; the moment film's terms)."""
-        c, st = self.ctx, self.grid.store
+        Returns (the value, unnormalised; the moment film's terms). The merge itself is
+        evaluated only where the entry counts (a symbolic branch: ~1 entry in 100 lies within
+        r of the segment, and the rest skip the record, the phase function and the edge)."""
         ok, slot, level, y_p, qs = self.candidate(k, interval, seg, group_r2, active)
+        value = dr.zeros(mi.Spectrum, dr.width(ok))
+        terms = () if tap is None else tuple(dr.zeros(mi.Float, dr.width(ok)) for _ in self.ctx.moments.counts)
+        if ok:
+            value, terms = self.evaluate((slot, level, y_p, qs), seg, ok, tap)
+        return value, terms
+
+    def evaluate(self, entry, seg, ok, tap):
+        """The merge of the entry (its slot, level, position and (q, s)) with the segment."""
+        c, st = self.ctx, self.grid.store
+        slot, level, y_p, qs = entry
         rec = st.record.load(st.v, slot, ok)
         ok &= rec.depth_at(level) + seg.sub.depth + 1 <= c.max_depth_edges
         y = rec.interaction(c.time, seg.ray.wavelengths)

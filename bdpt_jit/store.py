@@ -90,6 +90,16 @@ class VertexRecord:
     def packets(cls):
         return (cls.words() + 3) // 4
 
+    @classmethod
+    def word_of(cls, name):
+        """The position of field ``name``'s first word in a packed record."""
+        i = 0
+        for k, t in cls.DRJIT_STRUCT.items():
+            if k == name:
+                return i
+            i += _COMPONENTS[t]
+        raise KeyError(name)
+
     def pack(self):
         out = []
         for k, t in self.DRJIT_STRUCT.items():

@@ -258,19 +258,26 @@ def test_stiff_extinction_finite(sigma_t):
     assert out.min() >= 0 and out.max() <= 20.0
 
 
-@pytest.mark.parametrize('name,technique,everywhere,radius,spp', [
-    ('fog-area', 'vcm', True, 0.004, 256), ('glass-juice', 'vcm', False, 0.004, 256),
-    ('fog-area', 'vcm', True, 0.05, 256), ('fog-area', 'vm', False, 0.05, 1024), ('fog-dense', 'vm', False, 0.05, 1024)])
-def test_merging_agrees_with_volpath(name, technique, everywhere, radius, spp):
-    """Merges on surfaces and inside media (a ball of radius r: merge.py, mis.MIS.set_volume):
+@pytest.mark.parametrize('name,technique,everywhere,radius,spp,merging', [
+    ('fog-area', 'vcm', True, 0.004, 256, 'beams'), ('glass-juice', 'vcm', False, 0.004, 256, 'beams'),
+    ('fog-area', 'vcm', True, 0.05, 256, 'beams'), ('fog-area', 'vm', False, 0.05, 1024, 'beams'),
+    ('fog-dense', 'vm', False, 0.05, 1024, 'beams'), ('fog-area', 'vm', False, 0.05, 1024, 'points'),
+    ('smoke-box', 'vcm', True, 0.05, 256, 'beams')])
+def test_merging_agrees_with_volpath(name, technique, everywhere, radius, spp, merging):
+    """Merges on surfaces and inside media (the fogs are gray: beams, beams.py; the juice is
+    chromatic: balls of radius r, merge.py; ``points``: balls in the fog too):
     vcm with merges at every vertex of the fog room, small and large radius (0.05: 0.1 in a
     room of 2, where merges at medium vertices carry weight), and behind the juice-filled glass
-    sphere (the default merge set); vm (photon mapping alone: every medium vertex the camera
-    reaches merges) in the fog room and in dense fog (sigma_t 5: nearly all of the image from
-    merges inside the medium). One merging iteration a sample. The blur of r = 0.05 is below
-    the test's noise here (measured: vm's image mean +0.3% +- 0.5%); not in a scene whose medium
-    ends in the open within r of what the camera sees (a ball there holds fewer light vertices)."""
-    integ = {**bdpt(technique, 6), 'radius': radius, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere}
+    sphere (the default merge set); vm (photon mapping alone: every segment or medium vertex the
+    camera reaches merges) in the fog room and in dense fog (sigma_t 5: nearly all of the image
+    from merges inside the medium); vcm with beams in the heterogeneous grid (gray: delta tracking
+    passes a point with the probability T, the MIS proxy's 1 / mean sigma_t). One merging
+    iteration a sample. The blur of r = 0.05 is below
+    the test's noise here (measured with balls: vm's image mean +0.3% +- 0.5%); not in a scene
+    whose medium ends in the open within r of what the camera sees (a ball there holds fewer
+    light vertices)."""
+    integ = {**bdpt(technique, 6), 'radius': radius, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere,
+             'media_merging': merging}
     check_against_volpath(name, integ, spp=spp)
 
 
@@ -287,13 +294,15 @@ def test_light_cache_agrees_with_volpath(name, technique, extra, spp):
     check_against_volpath(name, {**bdpt(technique, 6), **extra}, spp=spp)
 
 
-@pytest.mark.slow       # (~80 s: the CI cases above catch a 5% error of the ball's normalisation)
-def test_merging_inside_media_image_mean():
-    """vm in the fog room at 16384 samples a pixel: the image mean within 4 combined standard
-    errors of volpath's (0.2% of it; merges inside the medium make ~90% of vm's image here:
-    planted, a 1% error of the ball's 4/3 pi r^3 N moved it by 4.2 of them)."""
-    integ = {**bdpt('vm', 6), 'radius': 0.05, 'samples_per_pass': 1 << 16}
-    mine = render_batches(mi.load_dict(SCENES['fog-area']()), integ, 16384, BATCHES).mean(axis=(1, 2, 3))
+@pytest.mark.parametrize('merging,spp', [('beams', 4096), pytest.param('points', 16384, marks=SLOW)])
+def test_merging_inside_media_image_mean(merging, spp):
+    """vm in the fog room, beams (4096 samples a pixel, ~25 s) and balls (16384, ~100 s, slow):
+    the image mean within 4 combined standard errors of volpath's (merges inside the medium make
+    ~90% of vm's image here). Planted, a 1% error of the estimate's normalisation moved it by 4.2
+    of them with balls (4/3 pi r^3 N) and by 9.9 with beams at 16384 (pi r^2 N; the CI cases
+    above catch a 5% one)."""
+    integ = {**bdpt('vm', 6), 'radius': 0.05, 'samples_per_pass': 1 << 16, 'media_merging': merging}
+    mine = render_batches(mi.load_dict(SCENES['fog-area']()), integ, spp, BATCHES).mean(axis=(1, 2, 3))
     ref = volpath_reference('fog-area', 6).mean(axis=(1, 2, 3))
     se = np.hypot(mine.std(ddof=1), ref.std(ddof=1)) / np.sqrt(BATCHES)
     assert abs(mine.mean() - ref.mean()) <= 4 * se, f'vm {mine.mean():.6f} vs volpath {ref.mean():.6f} +- {se:.6f}'
@@ -302,7 +311,7 @@ def test_merging_inside_media_image_mean():
 @pytest.mark.parametrize('everywhere', [False, True])
 def test_merge_factor_reaches_both_sides_of_the_mis(monkeypatch, everywhere):
     """The wiring of merges inside media: in a media scene with vcm each subpath's scatter gets
-    its vertex's merge factor (mis.MIS.merge_factor: h(4r/3) at a medium vertex), not a mask,
+    its vertex's merge factor (mis.MIS.merge_factor: h(4r/3) or h(1/sigma_t) at a medium vertex), not a mask,
     on the camera and on the light side. A render cannot see the light side's factor replaced by
     1 (planted: every render test passed; merges carry little weight next to the connections),
     the partition test checks only what MIS does with it; this checks that the kernels pass it."""
@@ -387,10 +396,12 @@ def variant_batches(tmp_path, variant, name, integ, spp, seed0=0):
 
 @pytest.mark.parametrize('variant,name,technique', [
     pytest.param('llvm_ad_mono', 'glass-juice', 'bdpt', marks=SLOW), pytest.param('llvm_ad_mono', 'smoke-box', 'pt', marks=SLOW),
-    ('llvm_ad_spectral', 'glass-juice', 'bdpt'), pytest.param('llvm_ad_spectral', 'smoke-box', 'bdpt', marks=SLOW)])
+    ('llvm_ad_spectral', 'glass-juice', 'bdpt'), pytest.param('llvm_ad_spectral', 'smoke-box', 'bdpt', marks=SLOW),
+    pytest.param('llvm_ad_mono', 'glass-juice', 'vcm', marks=SLOW)])
 def test_other_variants_agree_with_volpath(tmp_path, variant, name, technique):
     """Monochrome and spectral variants: the chromatic medium in glass (per wavelength in spectral
-    variants: one-sample spectral MIS over the sample's four wavelengths) and the heterogeneous grid."""
+    variants: one-sample spectral MIS over the sample's four wavelengths) and the heterogeneous grid;
+    vcm in monochrome, where the juice is gray and merges behind the glass are beams."""
     src = inspect.getsource(sys.modules[__name__])
     key = hashlib.sha1(src[:src.index('\ndef bdpt(')].encode()).hexdigest()[:12]
     ref = cached_reference(('media-variant', variant, name, RES, key),

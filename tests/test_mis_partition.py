@@ -83,7 +83,7 @@ def random_paths(rng, k, delta_prob, emitter='area', media=False):
         p_disk=np.full(M, 10.0 ** rng.uniform(-3, 1)),     # 1 / (pi R^2) of infinite emitters
         eta=10.0 ** rng.uniform(-2, 3, size=M),            # pi r^2 N of vertex merging
         radius=10.0 ** rng.uniform(-3, 1, size=M),         # r (media: a merge at a medium vertex has 4/3 pi r^3 N)
-        sigma=10.0 ** rng.uniform(-3, 3, size=(M, k + 1)),  # sigma_t at x_i (media, beams: a merge there is 1 / sigma_t)
+        sigma=10.0 ** rng.uniform(-3, 3, size=(M, k + 1)),  # sigma_t at x_i (beams: merges there 1 / sigma_t)
         emitter=emitter, media=media, lf=lf, lb=lb, med=med,
     )
 
