@@ -13,7 +13,7 @@ from .cameras import camera_for
 from .connect import DiffuseTable
 from .endpoints import EmitterTable
 from .film import FilmAccumulator, StrategyLayers
-from .gradients import ADSampling
+from .gradients import ADSampling, check_parameters
 from .mis import MIS
 from .params import ParameterError, aov_channel_names, parse_aovs
 from .passes import UNBOUNDED
@@ -149,6 +149,12 @@ class Context:
                 f"bdpt: gradients with participating media are not available yet (the scene has the medium "
                 f"{first}): render it without derivatives, or differentiate with Mitsuba's prbvolpath",
                 alternative='prbvolpath')
+        if not self.ad:
+            # a gradient-enabled parameter (the primal render of mi.render with params): refused
+            # now, before any kernel runs, as the backward pass would refuse it (gradients.py);
+            # its primal kernels also met a Dr.Jit 1.5 code-generation failure ("invalid
+            # redefinition of function" in a virtual call) after some process histories
+            check_parameters(mi.traverse(scene), scene)
         stats = MediumStats() if settings['statistics'] else None
         return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets), stats
 
