@@ -250,13 +250,13 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         vpp, c = self.cache_run
         counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
         eta, radius = merging
-        ps.mis = ctx.mis.for_pass(eta, counts, radius)
+        ps.mis = ctx.mis.for_pass(eta, counts, radius, ctx.beams)
         eta_light, radius_light = None, None
         if eta is not None:
             eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light))
         if radius is not None:
             radius_light = ps.schedule.radius(ps.schedule.group(dr.arange(mi.UInt32, n_light)))
-        ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light)
+        ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light, ctx.beams)
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {

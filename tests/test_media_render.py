@@ -284,12 +284,15 @@ def test_merging_agrees_with_volpath(name, technique, everywhere, radius, spp, m
     ('fog-area', 'bdpt', {'light_paths': 0.25, 'connections': 4}, 256),
     ('smoke-box', 'bdpt', {'light_paths': 0.5, 'connections': 2}, 256),
     ('fog-box', 'lt', {'light_paths': 1.0}, 1024),
-    ('glass-juice', 'vcm', {'light_paths': 0.5, 'radius': 0.004, 'samples_per_pass': 1 << 16}, 1024)])
+    ('glass-juice', 'vcm', {'light_paths': 0.5, 'radius': 0.004, 'samples_per_pass': 1 << 16}, 1024),
+    ('fog-area', 'vcm', {'light_paths': 0.5, 'radius': 0.05, 'merge_everywhere': True, 'samples_per_pass': 1 << 16}, 256)])
 def test_light_cache_agrees_with_volpath(name, technique, extra, spp):
     """The light vertex cache (light_cache.py) with media: n_L light subpaths a pass, each camera
     vertex connected to c vertices drawn from all of them (medium vertices among them), the MIS
     counts; homogeneous fog, the heterogeneous grid (ratio tracking on the drawn connections),
-    light tracing alone, and vcm behind the juice-filled glass (merges in the medium)."""
+    light tracing alone, vcm behind the juice-filled glass (merges in the medium: balls, the juice
+    is chromatic), and vcm with merges everywhere in the gray fog (beams: the cache's passes must
+    weigh them as beams on both sides)."""
     check_against_volpath(name, {**bdpt(technique, 6), **extra}, spp=spp)
 
 
