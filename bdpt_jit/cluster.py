@@ -258,7 +258,11 @@ def _unpacked_folder(job):
     os.makedirs(base, exist_ok=True)
     for old in os.listdir(base):
         p = os.path.join(base, old)
-        if time.time() - os.path.getmtime(p) > 86400:
+        try:        # (another worker may rename its temporary folder between listdir and here)
+            stale = time.time() - os.path.getmtime(p) > 86400
+        except FileNotFoundError:
+            continue
+        if stale:
             shutil.rmtree(p, ignore_errors=True)
     tmp = tempfile.mkdtemp(prefix=job.token + '.', dir=base)
     zipfile.ZipFile(io.BytesIO(ray.get(job.files[0]))).extractall(tmp)
