@@ -21,7 +21,10 @@ SIGGRAPH 2022) and each candidate's measured time.
    96 x 96 image ranged over 0.6-2.3 ms a sample per pixel, and a cache was chosen over it.
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
    pixel), the efficiency 1 / (v t), the best candidate of those that miss less than MAX_MISSED
-   of the image. The render then runs it with the caller's seed and spp.
+   of the image. No candidate's t is less than pt's: each runs pt's strategies and more, so a
+   lower time is the trials' noise. A near tie goes to pt: another candidate must be PREFER_PT
+   times as efficient (in the open, a cache of few light subpaths predicts pt's variance to a
+   few per cent, and timing noise alone decided between them). The render then runs it with the caller's seed and spp.
 
 The choice depends on the pilot's and the trials' samples only, which share none with the render
 (``pass_seed`` keeps seeds ``seed + 2^30`` and up apart from the render's passes), so the image
@@ -46,6 +49,7 @@ CONNECTIONS = (1, 2, 4, 8)              # and cached vertices per camera vertex 
 TIMED_CACHES = ((0.25, 1), (1.0, 1), (1.0, 4))   # the caches whose time is measured (the cost model's)
 TIMED_MERGING = (0.25, 1)       # the merging cache whose time is measured (with vcm's: the merges' cost model)
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
+PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
 
 
@@ -195,8 +199,10 @@ def choose(make, ctx, scene, sensor, seed, vpp):
 def ranked(trials):
     """Each trial's efficiency, 1 / (v t) (0 where it misses more than MAX_MISSED): (the best,
     the runner-up or None)."""
+    pt = next((tr for tr in trials if tr.name == 'pt' and tr.seconds is not None), None)
     for tr in trials:
         ok = tr.missed < MAX_MISSED
-        tr.efficiency = 1.0 / max(tr.rel_var * tr.seconds, 1e-30) if ok else 0.0
-    order = sorted(trials, key=lambda tr: -tr.efficiency)
+        t = tr.seconds if pt is None else max(tr.seconds, pt.seconds)   # pt's work and more
+        tr.efficiency = 1.0 / max(tr.rel_var * t, 1e-30) if ok else 0.0
+    order = sorted(trials, key=lambda tr: -tr.efficiency * (PREFER_PT if tr is pt else 1.0))
     return order[0], (order[1] if len(order) > 1 and order[1].efficiency > 0 else None)
