@@ -112,7 +112,7 @@ class Context:
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
         self.beams = (self.media is not None and self.strategies.trace_merge and self.media.info.gray
                       and settings.get('media_merging', 'beams') == 'beams')
-        self.record = record_type(VertexNeeds(scene), merging=self.mis.mis_merges, media=self.media is not None)
+        self._record = None     # the stored light vertices' type: built when a store asks (record)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
         self.diffuse = None if ad else diffuse_table(scene)
         # opaque: literals would be baked into the kernels and recompile them for every spp
@@ -133,6 +133,25 @@ class Context:
         self.sampling = ADSampling(self) if ad else Sampling(self)
         self.light_cache = self.cache_settings(settings)
         self.evaluate_tables()
+
+    @property
+    def record(self):
+        """The stored light vertices' record type (store.record_type), with the optional fields
+        this scene reads (VertexNeeds): built on first use, so that path tracing, which stores
+        none, does not read the meshes' buffers for it on every render call."""
+        if self._record is None:
+            self._record = record_type(VertexNeeds(self.scene), merging=self.mis.mis_merges,
+                                       media=self.media is not None)
+        return self._record
+
+    @property
+    def record_built(self):
+        """Whether a store asked for the record type (light vertices were stored)."""
+        return self._record is not None
+
+    @record.setter
+    def record(self, value):
+        self._record = value
 
     def media_setup(self, scene, sensor, settings, technique):
         """(media.MediumTracer, media_path.EmitterMedia, stats.MediumStats or None) of a scene

@@ -270,7 +270,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             'camera_pass': ctx.strategies.camera_pass,
             'light_vertex_levels': self.light_capacity(ctx),
             'light_vertex_levels_used': levels_used,
-            'light_vertex_fields': list(ctx.record.DRJIT_STRUCT),
+            'light_vertex_fields': list(ctx.record.DRJIT_STRUCT) if ctx.record_built else [],
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
