@@ -14,7 +14,9 @@ passed (``--repeats`` times with seeds of their own, the median reported: rare f
 as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
 single run); relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
 error is part of every figure: give it many more samples (``--ref-spp``) than any contestant
-reaches. The scene file takes ``$res`` or ``$resx``/``$resy`` and ``$max_depth``."""
+reaches. It is estimated from the reference's two halves (mean((A - B)^2 / 4 / (R^2 + 1e-2)):
+the variance of R = (A + B) / 2) and printed; the columns "less the reference's" subtract it
+(an error and the reference's add, being independent). The scene file takes ``$res`` or ``$resx``/``$resy`` and ``$max_depth``."""
 
 import argparse
 import hashlib
@@ -60,18 +62,23 @@ def contestant(name, max_depth):
 
 
 def reference(args):
-    """``--ref-integrator`` (a configuration name; default Mitsuba's path) at --ref-spp, in batches
-    of 64, cached by scene, resolution, depth and integrator."""
+    """(the image, its own relMSE) of ``--ref-integrator`` (a configuration name; default
+    Mitsuba's path) at --ref-spp, in batches of 64, in two halves of independent seeds, cached by
+    scene, resolution, depth and integrator."""
     key = hashlib.sha1(repr((os.path.abspath(args.scene), args.res, args.max_depth, args.ref_spp,
                              args.ref_integrator, mi.__version__) + tuple(args.define)).encode()).hexdigest()[:16]
-    path = os.path.join(args.cache_dir, f'lc-ref-{key}.npy')
+    path = os.path.join(args.cache_dir, f'lc-ref-halves-{key}.npy')
     if os.path.exists(path):
-        return np.load(path)
-    scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth), args.define)
-    ref = long_render(scene, integ, args.ref_spp)
-    os.makedirs(args.cache_dir, exist_ok=True)
-    np.save(path, ref)
-    return ref
+        halves = np.load(path)
+    else:
+        scene, integ = load(args.scene, args.res, args.max_depth, contestant(args.ref_integrator, args.max_depth),
+                            args.define)
+        n = max(args.ref_spp // 2, 1)
+        halves = np.stack([long_render(scene, integ, n), long_render(scene, integ, n, seed0=10_000 + (1 << 24))])
+        os.makedirs(args.cache_dir, exist_ok=True)
+        np.save(path, halves)
+    ref = halves.mean(axis=0)
+    return ref, float(np.mean((halves[0] - halves[1]) ** 2 / 4 / (ref ** 2 + 1e-2)))
 
 
 def relmse(img, ref, mask=None):
@@ -161,17 +168,21 @@ def main():
     mi.set_variant(args.variant)
     import bdpt_jit  # noqa: F401  (registers bdpt)
     t0 = time.perf_counter()
-    ref = reference(args)
+    ref, ref_err = reference(args)
     print(f'# {args.scene} {args.res}x{args.res} max_depth {args.max_depth}, reference {args.ref_integrator} {args.ref_spp} spp '
-          f'({time.perf_counter() - t0:.0f} s), budget {args.budget} s, {mi.variant()}, {os.cpu_count()} cores')
+          f'({time.perf_counter() - t0:.0f} s; its own relMSE {ref_err:.3g}), budget {args.budget} s, {mi.variant()}, '
+          f'{os.cpu_count()} cores')
     rows = [measure(args, name, ref) for name in args.configs.split(',')]
     base = next((r for r in rows if r['name'] == 'path'), rows[0])
-    print('| configuration | M samples/s | /path | spp in budget | relMSE (median) | relMSE / path | runs | warm-up s | cache |')
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('| configuration | M samples/s | /path | spp in budget | relMSE (median) | relMSE / path | '
+          "less the reference's | / path's | runs | warm-up s | cache |")
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
+    own = lambda r: max(r['relmse'] - ref_err, 0.0)      # noqa: E731
     for r in rows:
+        ratio = f"{own(r) / own(base):.2f}" if own(base) > 0 else '-'
         print(f"| {r['name']} | {r['sps'] / 1e6:.3f} | {r['sps'] / base['sps']:.2f} | {r['spp']} | {r['relmse']:.4g} | "
-              f"{r['relmse'] / base['relmse']:.2f} | {' '.join(f'{x:.3g}' for x in r['rels'])} | {r['warm']:.1f} | "
-              f"{r['info'] or ''} |")
+              f"{r['relmse'] / base['relmse']:.2f} | {own(r):.4g} | {ratio} | {' '.join(f'{x:.3g}' for x in r['rels'])} | "
+              f"{r['warm']:.1f} | {r['info'] or ''} |")
 
 
 if __name__ == '__main__':
