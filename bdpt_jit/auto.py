@@ -24,7 +24,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    of the image. No candidate's t is less than pt's: each runs pt's strategies and more, so a
    lower time is the trials' noise. A near tie goes to pt: another candidate must be PREFER_PT
    times as efficient (in the open, a cache of few light subpaths predicts pt's variance to a
-   few per cent, and timing noise alone decided between them). The render then runs it with the caller's seed and spp.
+   few per cent, and timing noise alone decided between them). The render then runs the chosen
+   candidate with the caller's seed and spp.
 
 The choice depends on the pilot's and the trials' samples only, which share none with the render
 (``pass_seed`` keeps seeds ``seed + 2^30`` and up apart from the render's passes), so the image
@@ -197,8 +198,8 @@ def choose(make, ctx, scene, sensor, seed, vpp):
 
 
 def ranked(trials):
-    """Each trial's efficiency, 1 / (v t) (0 where it misses more than MAX_MISSED): (the best,
-    the runner-up or None)."""
+    """Each trial's efficiency, 1 / (v max(t, pt's t)) (0 where it misses more than MAX_MISSED):
+    (the best, pt's efficiency counted PREFER_PT times; the runner-up or None)."""
     pt = next((tr for tr in trials if tr.name == 'pt' and tr.seconds is not None), None)
     for tr in trials:
         ok = tr.missed < MAX_MISSED

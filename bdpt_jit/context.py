@@ -144,14 +144,14 @@ class Context:
                                        media=self.media is not None)
         return self._record
 
+    @record.setter
+    def record(self, value):
+        self._record = value
+
     @property
     def record_built(self):
         """Whether a store asked for the record type (light vertices were stored)."""
         return self._record is not None
-
-    @record.setter
-    def record(self, value):
-        self._record = value
 
     def media_setup(self, scene, sensor, settings, technique):
         """(media.MediumTracer, media_path.EmitterMedia, stats.MediumStats or None) of a scene

@@ -264,6 +264,26 @@ def test_vcm_closed_sphere_with_the_cache():
 
 
 # ---------------------------------------------------------------------------- technique auto
+@pytest.mark.parametrize('cache_var,cache_time,want', [
+    (1 / 1.05, 1.0, 'pt'),      # 1.05x pt's efficiency, within PREFER_PT: a near tie, pt
+    (1 / 1.2, 1.0, 'cache'),    # 1.2x: the cache
+    (1.0, 0.5, 'pt'),           # pt's variance, timed faster than pt (noise): counted at pt's time
+])
+def test_auto_ranks_with_pt_s_time_as_the_least_and_near_ties_to_pt(cache_var, cache_time, want):
+    """auto.ranked on synthetic trials (pt: relMSE 1 at 1 spp, 1 s a sample): no candidate's
+    time counts as less than pt's (each does pt's work and more), and another candidate wins only
+    if PREFER_PT times as efficient. Without either rule the third case picks the cache."""
+    from bdpt_jit import auto
+    pt = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    cache = auto.Trial('cache', {}, (0.1, 0.25, 0.0), (0.25, 1))
+    for tr, v, t in ((pt, 1.0, 1.0), (cache, cache_var, cache_time)):
+        tr.rel_var, tr.seconds, tr.missed = v, t, 0.0
+    best, runner = auto.ranked([cache, pt])
+    assert best.name == want and runner is not None
+    assert cache.efficiency == pytest.approx(1.0 / (cache_var * max(cache_time, 1.0)))
+    assert pt.efficiency == pytest.approx(1.0)
+
+
 @pytest.mark.parametrize('scene_name,merging', [('cornell-box.xml', False), ('caustic.xml', True)])
 def test_auto_renders_the_chosen_configuration(scene_name, merging):
     """technique 'auto' (auto.py): the pilot's predicted variances and the timed trials choose
