@@ -24,6 +24,7 @@ from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
                      count_passes, light_capacity, pass_seed, plan_passes)
 from .gradients import check_parameters, geometry_keys
+from .jit_guard import held
 from .scene_check import check_scene, check_variant
 from .store import LightStore
 
@@ -87,6 +88,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.cache_run = (vpp, c if c > 0 else max(1, int(round(vpp))))
 
     # ------------------------------------------------------------------ render
+    @held
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not develop:
             raise NotImplementedError(
@@ -288,6 +290,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         return info
 
     # ------------------------------------------------------------------ derivatives
+    @held
     def render_forward(self, scene, params=None, sensor=0, seed=0, spp=0):
         """Forward-mode derivative of the image (the gradients set on ``params`` pushed to the
         image), pass by pass: what ``mi.render`` calls for ``dr.forward``. See gradients.py."""
@@ -299,6 +302,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             dr.eval(grad)
         return grad
 
+    @held
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """Reverse-mode derivative: ``grad_in`` (the image's adjoint) propagated to the scene
         parameters, pass by pass, so that memory is bounded by the pass size, not by spp."""

@@ -15,4 +15,6 @@ workers="${BDPT_TEST_WORKERS:-$(( cores < 2 ? 1 : 2 ))}"
 if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
     exec .venv/bin/python -m pytest -q "$@"
 fi
-exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile "$@"
+# --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist 3.8
+# replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
+exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"

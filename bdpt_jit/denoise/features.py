@@ -26,12 +26,14 @@ import mitsuba as mi
 import numpy as np
 
 from ..rays import RayOffsets, spawn
+from ..jit_guard import held
 
 MAX_LANES = 1 << 22             # samples traced per kernel launch (memory: ~100 bytes a lane)
 DEFAULT_MAX_DEPTH = 16          # delta vertices followed before giving up
 SEED_SALT = 0x5EEDF00D          # the feature pass's seeds differ from the render's
 
 
+@held
 def feature_images(scene, sensor=0, spp=16, seed=0, max_depth=DEFAULT_MAX_DEPTH):
     """(albedo, normal) of the sensor's crop as float32 arrays: albedo (H, W, 3), or (H, W, 1)
     in a monochrome variant, in [0, 1]; normal (H, W, 3), world space, the average of the
