@@ -18,7 +18,9 @@ in a reference cycle (seen in the test suite, where an earlier test's scene with
 collected during a render of a scene with one other medium). ``held`` therefore switches the
 automatic collector off for the duration of a render (its trace and its kernels' evaluation) and
 restores it after; objects freed by reference counting are unaffected, and cyclic garbage is
-collected at the next collection after the render.
+collected at the next collection after the render. (Not for longer: Dr.Jit's AD graph is freed
+with the variables that hold it, and garbage kept across renders leaves stale edges in later
+traversals.)
 """
 
 import functools
