@@ -412,3 +412,56 @@ def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt'
     assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
+
+
+def _sky_only(width, height):
+    """A sensor under a constant sky of 0.5 and nothing else (box filter: a sample adds to its
+    own pixel only): every camera sample's pt estimate is exactly 0.5."""
+    return {'type': 'scene', 'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': 0.5}},
+            'sensor': {'type': 'perspective', 'fov': 40,
+                       'film': {'type': 'hdrfilm', 'width': width, 'height': height, 'rfilter': {'type': 'box'}}}}
+
+
+@pytest.mark.parametrize('technique', ['pt', 'bdpt'])
+def test_a_pixel_stride_samples_every_kth_pixel_only(technique):
+    """auto's timed trials (integrator.pixel_stride k): camera samples in crop pixels 0, k, 2k, ...
+    only, spp of them each: under a constant sky, 0.5 exactly there, and exactly 0 elsewhere with
+    pt (bdpt's light tracing splats everywhere); the samples counted are spp ceil(n / k)."""
+    scene = mi.load_dict(_sky_only(37, 11))
+    integ = mi.load_dict({'type': 'bdpt', 'technique': technique, 'max_depth': 3})
+    integ.pixel_stride = 5
+    img = np.asarray(mi.render(scene, integrator=integ, spp=3))[..., 0].reshape(-1)
+    lattice = np.arange(img.size) % 5 == 0
+    assert integ.last_render_info['samples'] == 3 * -(-img.size // 5)
+    np.testing.assert_allclose(img[lattice], 0.5, rtol=1e-5)
+    if technique == 'pt':
+        assert (img[~lattice] == 0).all()
+
+
+def test_auto_times_trials_on_a_lattice_of_a_large_crop(monkeypatch):
+    """A crop of more than auto.TRIAL_PIXELS pixels: a trial renders TRIAL_SPP samples in every
+    k-th pixel (k = ceil(n / TRIAL_PIXELS)), and its seconds per sample per pixel are its kernels'
+    time scaled to the whole crop: time / TRIAL_SPP * n / ceil(n / k)."""
+    from bdpt_jit import auto
+    scene = mi.load_dict(_sky_only(200, 180))           # 36000 pixels: k = 3
+    sensor = scene.sensors()[0]
+    seen = {}
+
+    def kernel_seconds(render):
+        render()
+        seen['samples'] = integ[0].last_render_info['samples']
+        return 0.012
+    monkeypatch.setattr(auto, 'kernel_seconds', kernel_seconds)
+    integ = []
+
+    def make(settings):
+        integ.append(mi.load_dict({'type': 'bdpt', 'max_depth': 3, **settings}))
+        return integ[-1]
+    trial = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    auto.time_trial(make, trial, scene, sensor, 0)
+    n, k = 36000, 3
+    assert auto.trial_stride(sensor) == k and integ[0].pixel_stride == k
+    assert seen['samples'] == auto.TRIAL_SPP * (n // k)
+    assert trial.seconds == pytest.approx(0.012 / auto.TRIAL_SPP * n / (n // k), rel=1e-12)
+    small = mi.load_dict(_sky_only(128, 128))           # TRIAL_PIXELS or fewer: every pixel
+    assert auto.trial_stride(small.sensors()[0]) == 1
