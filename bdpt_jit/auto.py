@@ -11,11 +11,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter).
 2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
-   pixel in at most TRIAL_PIXELS pixels of the crop (every k-th: a lattice over the whole image,
-   so that a large image's trials cost no more than a 128 x 128 one's); t, seconds per sample
-   per pixel of the whole crop, is the time their kernels run scaled to the crop (Dr.Jit's
-   kernel history: not the time to trace or compile them, which a long render pays once a pass
-   or once). The other caches' t comes from a cost model fitted to the three, linear in
+   pixel; t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
+   history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the three, linear in
    the light subpaths per camera sample and in the connections per camera vertex; the best
    candidate by the model is timed too before it is chosen (until the best is a timed one), and
    while the runner-up's efficiency is within CLOSE of the best's, both are timed again, up to
@@ -45,7 +42,6 @@ import numpy as np
 
 TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
-TRIAL_PIXELS = 16384            # the timed trials' camera samples go to at most this many pixels (a lattice)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
@@ -129,23 +125,12 @@ def kernel_seconds(render):
     return sum(k.get('execution_time', 0.0) for k in history) / 1e3
 
 
-def trial_stride(sensor):
-    """The pixel stride of the timed trials: camera samples in every k-th pixel of the crop, at
-    most TRIAL_PIXELS of them (1: every pixel of a crop that small)."""
-    crop = sensor.film().crop_size()
-    return max(1, -(-int(crop[0]) * int(crop[1]) // TRIAL_PIXELS))
-
-
 def time_trial(make, trial, scene, sensor, seed):
-    """The candidate's seconds per sample per pixel of the whole crop (``make(settings)``: an
-    integrator): its kernels' time in a render of TRIAL_SPP in every ``trial_stride``-th pixel,
-    scaled to the crop, the least over its timings."""
+    """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
+    kernels' time in a render of TRIAL_SPP, the least over its timings."""
     integ = make(trial.settings)
-    integ.pixel_stride = trial_stride(sensor)
     t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=TRIAL_SPP))
-    crop = sensor.film().crop_size()
-    n_crop = int(crop[0]) * int(crop[1])
-    t = max(t, 1e-9) / TRIAL_SPP * n_crop / -(-n_crop // integ.pixel_stride)
+    t = max(t, 1e-9) / TRIAL_SPP
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
     trial.timed = True
     trial.timings += 1

@@ -43,14 +43,12 @@ class CameraTracer:
 
     def primary(self):
         """Camera rays for the pass's samples: spp_pass consecutive samples per pixel of the
-        crop from crop pixel ``pixel_start`` (every ``pixel_stride``-th); the wavelength sample is the pass state's where
+        crop from crop pixel ``pixel_start``; the wavelength sample is the pass state's where
         the light subpaths were given the wavelengths it chooses (spectral variants)."""
         c, ps = self.ctx, self.ps
         sampler = ps.sampler
         idx = dr.arange(mi.UInt32, ps.n)
         pixel = idx // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
-        if ps.pixel_stride != 1:        # (traced only for technique auto's timed trials)
-            pixel = pixel * dr.opaque(mi.UInt32, ps.pixel_stride)
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size

@@ -56,8 +56,6 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
         self.moment_counts = None       # technique auto's pilot: the candidates' (n_c, n_lt) (moments.py)
         self.moment_film = None         # its moments.MomentFilm after a render
-        self.pixel_stride = 1           # technique auto's timed trials (auto.time_trial): camera samples in every
-                                        # pixel_stride-th crop pixel only (an image for timing, not for use)
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -105,16 +103,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ctx = self.make_context(scene, sensor, spp)
         acc = FilmAccumulator(sensor.film(), ctx.aov_names)
         crop = sensor.film().crop_size()
-        n_crop = int(crop[0]) * int(crop[1])
-        n_pixels = -(-n_crop // self.pixel_stride)          # the pixels given camera samples
+        n_pixels = int(crop[0]) * int(crop[1])
         if ctx.light_cache is not None:
             self.start_cache(ctx, seed, max(256, int(ctx.light_cache.ratio * spp * n_pixels)))
         t0 = _time.perf_counter()
         samples_done, interrupted, levels_used = self.run_passes(ctx, acc, seed, spp, n_pixels)
-        # Each light path splatted 1/spp; if the render stopped early (or had a pixel stride),
-        # fewer light paths were traced than that scale assumes (camera samples are normalised
-        # per pixel anyway).
-        light_scale = spp * n_crop / samples_done if samples_done else 1.0
+        # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
+        # traced than that scale assumes (camera samples are normalised per pixel anyway).
+        light_scale = spp * n_pixels / samples_done if samples_done else 1.0
         image = acc.develop(light_scale)
         if evaluate:
             dr.eval(image)
@@ -238,7 +234,6 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if ctx.media is not None:                        # merges inside media: the ball's radius
                 radius = schedule.radius(schedule.group(dr.arange(mi.UInt32, n)))
         ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
-        ps.pixel_stride = self.pixel_stride
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if ctx.light_cache is not None:
             self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))

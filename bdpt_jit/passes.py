@@ -117,7 +117,6 @@ class PassState:
         self.n = n                      # samples in the pass (one camera and one light subpath each)
         self.spp_pass = spp_pass        # consecutive samples per pixel
         self.pixel_start = pixel_start  # the pass's first crop pixel
-        self.pixel_stride = 1           # its pixels: every pixel_stride-th of the crop (technique auto's timed trials)
         self.film = film                # film.FilmAccumulator
         self.mis = mis                  # mis.MIS of the pass (MIS.for_pass: its merging radius)
         self.spectral = None            # spectral variants: (wavelengths, their sampling weight) per sample
