@@ -11,7 +11,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter).
 2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
-   pixel; t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
+   pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
+   t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
    history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the three, linear in
    the light subpaths per camera sample and in the connections per camera vertex; the best
    candidate by the model is timed too before it is chosen (until the best is a timed one), and
@@ -42,6 +43,7 @@ import numpy as np
 
 TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
+TRIAL_SAMPLES = 1 << 16         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
@@ -125,12 +127,25 @@ def kernel_seconds(render):
     return sum(k.get('execution_time', 0.0) for k in history) / 1e3
 
 
-def time_trial(make, trial, scene, sensor, seed):
+def trial_spp(sensor):
+    """The samples per pixel of a timed trial: TRIAL_SPP in a crop of up to TRIAL_SAMPLES /
+    TRIAL_SPP pixels, fewer in a larger one (TRIAL_SAMPLES / pixels, at least 1). Not fewer pixels
+    instead: a merge's cost grows with the light vertices of its iteration (one sample per pixel
+    of the whole crop), and each kernel's fixed cost would be scaled up with them (timed on every
+    56th pixel of a 1280 x 720 image, pt's seconds per spp came out 1.42 times, vcm's 0.67 times
+    the whole image's)."""
+    if sensor is None:
+        return TRIAL_SPP
+    crop = sensor.film().crop_size()
+    return int(min(TRIAL_SPP, max(1, TRIAL_SAMPLES // (int(crop[0]) * int(crop[1])))))
+
+
+def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
-    kernels' time in a render of TRIAL_SPP, the least over its timings."""
+    kernels' time in a render of ``spp`` (trial_spp), the least over its timings."""
     integ = make(trial.settings)
-    t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=TRIAL_SPP))
-    t = max(t, 1e-9) / TRIAL_SPP
+    t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))
+    t = max(t, 1e-9) / spp
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
     trial.timed = True
     trial.timings += 1
@@ -180,19 +195,20 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     """(the chosen Trial, every Trial)."""
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
+    spp = trial_spp(sensor)
     for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
         if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
-            time_trial(make, tr, scene, sensor, seed)
+            time_trial(make, tr, scene, sensor, seed, spp)
     while True:
         cost_model(trials)              # again after each timing: its points' times may have fallen
         best, runner = ranked(trials)
         if not best.timed:          # the best by the model is timed before it is chosen
-            time_trial(make, best, scene, sensor, seed)
+            time_trial(make, best, scene, sensor, seed, spp)
         elif runner is not None and runner.efficiency * CLOSE > best.efficiency \
                 and min(best.timings, runner.timings) < TIMINGS:
             for tr in (best, runner):       # a close call: both timed again (the least of their times)
                 if tr.timings < TIMINGS:
-                    time_trial(make, tr, scene, sensor, seed)
+                    time_trial(make, tr, scene, sensor, seed, spp)
         else:
             return best, trials
 

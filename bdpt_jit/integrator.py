@@ -139,7 +139,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         image = chosen.render(scene, sensor, seed, spp, True, evaluate)
         self.strategy_images = chosen.strategy_images
         self.last_render_info = dict(chosen.last_render_info)
-        self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.TRIAL_SPP,
+        self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.trial_spp(sensor),
                                          'trial_s': trial_s, 'vertices_per_light_path': vpp,
                                          'candidates': [tr.report() for tr in trials]}
         return image

@@ -412,3 +412,37 @@ def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt'
     assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
+
+
+def _sky_only(width, height):
+    """A sensor under a constant sky and nothing else."""
+    return {'type': 'scene', 'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': 0.5}},
+            'sensor': {'type': 'perspective', 'fov': 40,
+                       'film': {'type': 'hdrfilm', 'width': width, 'height': height}}}
+
+
+def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
+    """A timed trial renders TRIAL_SPP samples per pixel of a crop of up to TRIAL_SAMPLES /
+    TRIAL_SPP pixels, TRIAL_SAMPLES / pixels (at least 1) in a larger one, over the whole crop
+    (a merge's cost depends on its iteration's light vertices: one light subpath per pixel), and
+    its seconds per sample per pixel are its kernels' time over those samples per pixel."""
+    from bdpt_jit import auto
+    spp_of = {(128, 128): 4, (100, 100): 4, (181, 181): 2, (200, 180): 1, (1280, 720): 1}
+    for (w, h), want in spp_of.items():
+        assert auto.trial_spp(mi.load_dict(_sky_only(w, h)).sensors()[0]) == want, (w, h)
+    scene = mi.load_dict(_sky_only(181, 181))
+    made, seen = [], {}
+
+    def kernel_seconds(render):
+        render()
+        seen['samples'] = made[0].last_render_info['samples']
+        return 0.012
+    monkeypatch.setattr(auto, 'kernel_seconds', kernel_seconds)
+
+    def make(settings):
+        made.append(mi.load_dict({'type': 'bdpt', 'max_depth': 3, **settings}))
+        return made[-1]
+    trial = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    auto.time_trial(make, trial, scene, scene.sensors()[0], 0, auto.trial_spp(scene.sensors()[0]))
+    assert seen['samples'] == 2 * 181 * 181
+    assert trial.seconds == pytest.approx(0.012 / 2, rel=1e-12) and trial.timed and trial.timings == 1
