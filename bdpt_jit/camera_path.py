@@ -49,6 +49,8 @@ class CameraTracer:
         sampler = ps.sampler
         idx = dr.arange(mi.UInt32, ps.n)
         pixel = idx // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
+        if ps.pixel_stride != 1:        # technique auto's pilot of a large crop (integrator.lattice_step)
+            pixel = pixel * ps.pixel_stride
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size
@@ -203,6 +205,8 @@ class CameraTracer:
         """Sum of the connections of camera vertex ``v`` to the light subpath of its sample."""
         c, store = self.ctx, self.ps.store
         n_light, slot_of = store.count, store.slot    # read before the loop
+        if self.ps.n_light != self.ps.n:              # (auto's lattice pilot: camera sample j, light subpath j)
+            n_light = dr.gather(mi.UInt32, n_light, idx)
         # heterogeneous media: ratio tracking on each connection draws samples, so the sampler
         # must be loop state (without this name in the loop the LLVM backend aborts)
         sampler = self.ps.sampler if c.media is not None and c.media.info.heterogeneous else None

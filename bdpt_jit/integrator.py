@@ -28,6 +28,7 @@ from .jit_guard import held
 from .scene_check import check_scene, check_variant
 from .store import LightStore
 
+LATTICE_PASS = 1 << 25          # pass_seed index of a lattice pilot's camera samples (lattice_pass_state)
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
 
 
@@ -154,7 +155,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if samples_done > 0 and self.hooks.stop():
                 return samples_done, True, levels_used
             if ctx.moments is not None:      # technique auto's pilot (moments.py): its halves
-                ctx.moments.begin_pass(spp_pass * pixel_count, spp_pass, samples_done // n_pixels)
+                cam = camera_lattice(ctx, pixel_start, pixel_count)[1]
+                ctx.moments.begin_pass(spp_pass * pixel_count, spp_pass, samples_done // n_pixels, spp_pass * cam)
             try:
                 levels = self.render_pass(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
             except (KeyboardInterrupt, RuntimeError) as e:
@@ -206,10 +208,12 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     def pass_state(self, ctx, acc, seed, i, spp_pass, pixel_start, pixel_count):
         """The passes.PassState of pass ``i``: its sampler, wavelengths and merging schedule
         (which advances the merge iteration count)."""
-        n = spp_pass * pixel_count
+        k = lattice_step(ctx)
+        v0, n_cam = camera_lattice(ctx, pixel_start, pixel_count)
+        n = spp_pass * n_cam
         sampler = ctx.sensor.sampler().clone()
         sampler.set_sample_count(spp_pass)
-        sampler.seed(pass_seed(seed, i), n)
+        sampler.seed(pass_seed(seed, i if k == 1 else LATTICE_PASS + i), n)
         u_wl, spectral = None, None
         if mi.is_spectral:
             # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
@@ -223,7 +227,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
         # light subpaths: one per camera sample, or the cache's n_L (whole ones per iteration)
-        n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None else n
+        n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None \
+            else spp_pass * pixel_count
         schedule, eta, radius = None, None, None
         if ctx.strategies.trace_merge:
             s = self.settings
@@ -233,11 +238,30 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
             if ctx.media is not None:                        # merges inside media: the ball's radius
                 radius = schedule.radius(schedule.group(dr.arange(mi.UInt32, n)))
-        ps = PassState(sampler, n, spp_pass, pixel_start, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
+        ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
+        if k > 1:
+            self.lattice_pass_state(ctx, ps, seed, i, k, n_light)
         if ctx.light_cache is not None:
             self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))
         return ps
+
+    def lattice_pass_state(self, ctx, ps, seed, i, k, n_light):
+        """technique auto's pilot of a large crop (``lattice_step`` k > 1): camera samples in
+        every k-th crop pixel only (the ones its moment film keeps), every light subpath of the
+        classic estimator (one per sample of every crop pixel, their own sampler seeded as the
+        pass's would be), so that the kept pixels' estimates and the counts in the MIS are the
+        classic estimator's; camera sample j connects to light subpath j."""
+        ps.pixel_stride = k
+        ps.n_light = n_light
+        ps.light_sampler = ctx.sensor.sampler().clone()
+        ps.light_sampler.set_sample_count(ps.spp_pass)
+        ps.light_sampler.seed(pass_seed(seed, i), n_light)
+        if ps.schedule is not None:     # merges: the light subpaths' own etas (and radii in media)
+            group = ps.schedule.group(dr.arange(mi.UInt32, n_light))
+            radius = ps.schedule.radius(group) if ctx.media is not None else None
+            ps.mis_light = ctx.mis.for_pass(ps.schedule.eta(dr.arange(mi.UInt32, n_light)), radius=radius,
+                                            beams=ctx.beams)
 
     def cache_pass_state(self, ctx, ps, seed, i, n_light, merging):
         """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
@@ -396,3 +420,20 @@ Example (Python)::
     scene = mi.load_file('scenes/cornell-box.xml')
     image = mi.render(scene, integrator=mi.load_dict({{'type': 'bdpt', 'max_depth': 8}}))
 """
+
+
+def lattice_step(ctx):
+    """k: technique auto's pilot (moments.py) of a crop larger than moments.MAX_PIXELS traces its
+    camera samples in every k-th crop pixel only, the ones its moment film keeps
+    (``Integrator.lattice_pass_state``); 1 everywhere else, and in spectral variants (where a
+    sample's light and camera subpaths share their wavelengths)."""
+    m = ctx.moments
+    return m.step if m is not None and m.step > 1 and not mi.is_spectral else 1
+
+
+def camera_lattice(ctx, pixel_start, pixel_count):
+    """(v0, count): the camera samples' pixels of a pass over crop pixels [pixel_start,
+    pixel_start + pixel_count): (v0 + j) k for j < count (k = ``lattice_step``)."""
+    k = lattice_step(ctx)
+    v0 = -(-pixel_start // k)
+    return v0, -(-(pixel_start + pixel_count) // k) - v0

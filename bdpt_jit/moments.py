@@ -225,17 +225,21 @@ class MomentFilm:
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
         self.stride = 1 + 2 * K + 2 * K * L
-        self.group = None                       # each lane's half, 0 or 1 (begin_pass)
+        self.groups = {}                        # each lane's half, 0 or 1, by the lanes' number (begin_pass)
         self.buf = dr.zeros(mi.Float, self.count * self.stride)
         self.pending = None                     # the (family vector, own family) of the weight just formed
 
-    def begin_pass(self, n, spp_pass, spp_before):
-        """The halves of a pass of ``n`` samples (``spp_pass`` consecutive ones a pixel, after
-        ``spp_before`` samples a pixel in earlier passes): a light subpath's lane is its camera
-        sample's (the classic estimator), so both halves are independent samples."""
-        idx = dr.arange(mi.UInt32, n)
-        self.group = ((idx % dr.opaque(mi.UInt32, spp_pass)) + dr.opaque(mi.UInt32, spp_before)) & 1
-        dr.eval(self.group)
+    def begin_pass(self, n, spp_pass, spp_before, n_camera=None):
+        """The halves of a pass of ``n`` light subpaths and ``n_camera`` camera samples (default
+        ``n``; fewer in a lattice pilot, integrator.lattice_step), ``spp_pass`` consecutive ones
+        a pixel, after ``spp_before`` samples a pixel in earlier passes: a light subpath's half
+        is that of its lane's camera sample (the classic estimator), so both halves are
+        independent samples."""
+        self.groups = {}
+        for width in {n, n if n_camera is None else n_camera}:
+            idx = dr.arange(mi.UInt32, width)
+            self.groups[width] = ((idx % dr.opaque(mi.UInt32, spp_pass)) + dr.opaque(mi.UInt32, spp_before)) & 1
+            dr.eval(self.groups[width])
 
     def offer(self, R, own):
         """FamilyMIS: the family vector of the weight it has just returned, and its family."""
@@ -263,6 +267,7 @@ class MomentFilm:
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
         lay = None if s is None else layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
+        group = None if lay is None else self.groups[dr.width(pixel)]     # the lanes' halves (begin_pass)
         terms = []
         for k, (n_c, n_lt, n_m) in enumerate(self.opaque_counts):
             r = R.x + n_c * R.y + n_lt * R.z + n_m * R.w                    # (family sums)
@@ -276,7 +281,7 @@ class MomentFilm:
                 terms.append(dr.select(ok & dr.isfinite(t_k), t_k, 0.0))
                 continue
             i_t = u_mean * ((1.0, n_c, n_lt)[own] * inv_r)                  # U w_s of candidate k
-            at = base + 1 + 2 * K + (2 * k + self.group) * len(self.families) + lay
+            at = base + 1 + 2 * K + (2 * k + group) * len(self.families) + lay
             add(i_t, at, ok & dr.isfinite(i_t))
         return tuple(terms)
 
@@ -338,7 +343,8 @@ def instrument(ctx, counts):
     from .film import NearestPixel
     if ctx.light_cache is not None or ctx.ad:
         raise ValueError('moments: the pilot is the classic estimator, without derivatives')
-    ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, MAX_LENGTH))
+    ctx.moments = MomentFilm(NearestPixel(ctx.sensor.film()), counts, min(ctx.max_depth_edges, MAX_LENGTH),
+                             MAX_PIXELS)
     ctx.mis = FamilyMIS(ctx.strategies, tap=ctx.moments, merge_everywhere=ctx.mis.merge_everywhere)
     ctx.record = family_record(ctx.record)
     return ctx.moments

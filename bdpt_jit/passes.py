@@ -116,7 +116,8 @@ class PassState:
         self.sampler = sampler          # the pass's sampler, seeded for its n samples
         self.n = n                      # samples in the pass (one camera and one light subpath each)
         self.spp_pass = spp_pass        # consecutive samples per pixel
-        self.pixel_start = pixel_start  # the pass's first crop pixel
+        self.pixel_start = pixel_start  # the pass's first crop pixel (in units of pixel_stride)
+        self.pixel_stride = 1           # camera samples in every pixel_stride-th crop pixel (auto's pilot: lattice_step)
         self.film = film                # film.FilmAccumulator
         self.mis = mis                  # mis.MIS of the pass (MIS.for_pass: its merging radius)
         self.spectral = None            # spectral variants: (wavelengths, their sampling weight) per sample

@@ -12,7 +12,7 @@ import pytest
 
 import media_scenes
 import test_light_cache as tlc
-from helpers import load_scene
+from helpers import agreement, load_scene
 import test_mis_partition as tmp
 from bdpt_jit.moments import FamilyMIS
 
@@ -94,6 +94,42 @@ def test_the_pilot_renders_the_classic_balance_image(name):
     np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(I, img[..., :3].mean(axis=2).ravel(), rtol=1e-4, atol=1e-6)
     assert np.all(np.isfinite(V)) and np.all(missed == 0.0)     # pt samples every path of these scenes
+
+
+@pytest.mark.parametrize('name', ['cornell', 'caustic, merging', pytest.param('fog room, merging', marks=pytest.mark.slow)])
+def test_a_lattice_pilot_estimates_the_classic_image_at_its_pixels(monkeypatch, name):
+    """A crop of more pixels than moments.MAX_PIXELS (here 64 of the 16 x 16 Cornell box: every
+    4th pixel kept): the pilot traces camera samples in the kept pixels only and every light
+    subpath of the classic estimator (integrator.lattice_step): a quarter of the camera rays,
+    and the moment film's image agrees with bdpt's balance image there (16 pilots of 16 spp
+    against 16 renders; a light image from a quarter of the light subpaths, or camera samples in
+    the wrong pixels, fail it); a pilot that merges everywhere (auto's where it offers merging:
+    the light subpaths' own merge densities), and one in fog (their radii: merges inside media)."""
+    from bdpt_jit import moments
+    monkeypatch.setattr(moments, 'MAX_PIXELS', 64)
+    D, B, spp = 4, 16, 16
+    props = {'mis': 'balance', 'statistics': True, **(VCM_ALL if 'merging' in name else {})}
+    scene = (mi.load_dict(media_scenes.fog_room(res=16)) if 'fog' in name
+             else load_scene('caustic.xml' if 'caustic' in name else 'cornell-box.xml', 16, D))
+    counts = [(1.0, 1.0, 1.0 if 'merging' in name else 0.0)]
+    mine = []
+    for b in range(B):
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': D, **props})
+        integ.moment_counts = counts
+        mi.render(scene, integrator=integ, spp=spp, seed=300 + b)
+        assert integ.moment_film.step == 4
+        mine.append(integ.moment_film.estimates(spp)[0].reshape(16, 4, 1))
+        rays = integ.last_render_info['rays']
+    full = mi.load_dict({'type': 'bdpt', 'max_depth': D, **props})
+    ref = []
+    for b in range(B):
+        img = np.array(mi.render(scene, integrator=full, spp=spp, seed=900 + b))[..., :3].mean(axis=2)
+        ref.append(img[:, ::4, None])
+    full_rays = full.last_render_info['rays']
+    assert 0.2 < rays['camera_rays'] / full_rays['camera_rays'] < 0.3
+    assert 0.9 < rays['light_rays'] / full_rays['light_rays'] < 1.1
+    ok, msg = agreement(np.array(mine), np.array(ref), alpha=0.01)
+    assert ok, msg
 
 
 def relmse(var, image):
