@@ -192,7 +192,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if ctx.beams:
                 ps.beams = BeamGather(ctx, BeamGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last
-        if ctx.strategies.camera_pass:
+        if ctx.strategies.camera_pass and ps.n > 0:    # (auto's lattice pilot: a pass may hold no kept pixel)
             CameraTracer(ctx, ps).trace()
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
         if ctx.layers is not None:
@@ -213,7 +213,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         n = spp_pass * n_cam
         sampler = ctx.sensor.sampler().clone()
         sampler.set_sample_count(spp_pass)
-        sampler.seed(pass_seed(seed, i if k == 1 else LATTICE_PASS + i), n)
+        sampler.seed(pass_seed(seed, i if k == 1 else LATTICE_PASS + i), max(n, 1))
         u_wl, spectral = None, None
         if mi.is_spectral:
             # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
@@ -235,9 +235,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
                                      spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
-            eta = schedule.eta(dr.arange(mi.UInt32, n))      # each sample's eta = pi r^2 N
+            lanes = dr.arange(mi.UInt32, max(n, 1))          # (a lattice pass without camera samples: unused)
+            eta = schedule.eta(lanes)                        # each sample's eta = pi r^2 N
             if ctx.media is not None:                        # merges inside media: the ball's radius
-                radius = schedule.radius(schedule.group(dr.arange(mi.UInt32, n)))
+                radius = schedule.radius(schedule.group(lanes))
         ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if k > 1:

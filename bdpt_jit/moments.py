@@ -236,7 +236,7 @@ class MomentFilm:
         is that of its lane's camera sample (the classic estimator), so both halves are
         independent samples."""
         self.groups = {}
-        for width in {n, n if n_camera is None else n_camera}:
+        for width in {n, n if n_camera is None else n_camera} - {0}:     # (a lattice pass may have no camera sample)
             idx = dr.arange(mi.UInt32, width)
             self.groups[width] = ((idx % dr.opaque(mi.UInt32, spp_pass)) + dr.opaque(mi.UInt32, spp_before)) & 1
             dr.eval(self.groups[width])

@@ -132,6 +132,30 @@ def test_a_lattice_pilot_estimates_the_classic_image_at_its_pixels(monkeypatch, 
     assert ok, msg
 
 
+def test_a_lattice_pilot_in_passes_without_kept_pixels(monkeypatch):
+    """A lattice pilot whose passes (samples_per_pass of 8 pixels) often hold none of the kept
+    pixels (every 16th of the 16 x 16 Cornell box): those passes trace their light subpaths
+    only; the kept pixels get the camera samples (a sixteenth of the full render's camera rays,
+    all of its light rays; the moment film's image is the film's there) and finite estimates."""
+    from bdpt_jit import moments
+    monkeypatch.setattr(moments, 'MAX_PIXELS', 16)
+    scene = load_scene('cornell-box.xml', 16, 4)
+    props = {'type': 'bdpt', 'max_depth': 4, 'mis': 'balance', 'statistics': True, 'samples_per_pass': 8}
+    integ = mi.load_dict(props)
+    integ.moment_counts = [(1.0, 1.0, 0.0)]
+    img = np.array(mi.render(scene, integrator=integ, spp=2, seed=3))
+    full = mi.load_dict(props)
+    mi.render(scene, integrator=full, spp=2, seed=3)
+    I, V, _ = integ.moment_film.estimates(2)
+    assert integ.moment_film.step == 16 and I.size == 16
+    assert np.all(np.isfinite(I)) and np.all(np.isfinite(V)) and I.sum() > 0
+    # the kept pixels (the first column) hold the film's values: the camera samples went there
+    np.testing.assert_allclose(I, img[:, 0, :3].mean(axis=1), rtol=1e-4, atol=1e-6)
+    rays, full_rays = integ.last_render_info['rays'], full.last_render_info['rays']
+    assert 0.03 < rays['camera_rays'] / full_rays['camera_rays'] < 0.1
+    assert rays['light_rays'] == full_rays['light_rays']
+
+
 def relmse(var, image):
     return float(np.mean(var / (image ** 2 + 1e-2)))
 
