@@ -13,6 +13,8 @@ import mitsuba as mi
 import numpy as np
 from scipy import stats
 
+from bdpt_jit.jit_guard import collector_paused
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(REPO, 'scenes')
 CACHE = os.path.join(REPO, 'tests', '.refcache')
@@ -32,7 +34,11 @@ def render_batches(scene, integrator, spp, batches, seed0=0):
         integrator = mi.load_dict(integrator)
     out = []
     for b in range(batches):
-        img = mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + b)
+        # no cyclic collection inside the render: Mitsuba's own integrators (the references)
+        # too, whose kernels Dr.Jit 1.5.0 may fail to compile if an earlier test's object is
+        # freed while they are traced (bdpt_jit/jit_guard.py does this for bdpt's renders)
+        with collector_paused():
+            img = mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + b)
         a = assert_finite(img, f'batch {b}')[:, :, :3]
         out.append(np.array(a, dtype=np.float64))
     return np.stack(out)
