@@ -6,8 +6,8 @@ SIGGRAPH 2022) and each candidate's measured time.
 
 1. The pilot: bdpt's classic estimator under the balance heuristic, PILOT_SPP samples per pixel
    (camera samples only in the pixels the moment film keeps where the crop has more than
-   moments.MAX_PIXELS: integrator.lattice_step) with seeds of its own (``seed + TRIAL_SEED``), its weights and densities kept per family of
-   sample counts (moments.FamilyMIS). From its samples, per pixel, each candidate's variance of a
+   moments.MAX_PIXELS: integrator.lattice_step) with seeds of its own (``seed + TRIAL_SEED``),
+   its weights and densities kept per family of sample counts (moments.FamilyMIS). From its samples, per pixel, each candidate's variance of a
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter).

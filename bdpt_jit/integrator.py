@@ -22,7 +22,7 @@ from .light_path import LightTracer
 from .beams import BeamGather, BeamGrid
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
-                     count_passes, light_capacity, pass_seed, plan_passes)
+                     count_passes, light_capacity, pass_sampler, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .jit_guard import held
 from .scene_check import check_scene, check_variant
@@ -211,9 +211,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         k = lattice_step(ctx)
         v0, n_cam = camera_lattice(ctx, pixel_start, pixel_count)
         n = spp_pass * n_cam
-        sampler = ctx.sensor.sampler().clone()
-        sampler.set_sample_count(spp_pass)
-        sampler.seed(pass_seed(seed, i if k == 1 else LATTICE_PASS + i), max(n, 1))
+        sampler = pass_sampler(ctx, spp_pass, seed, i if k == 1 else LATTICE_PASS + i, max(n, 1))
         u_wl, spectral = None, None
         if mi.is_spectral:
             # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
@@ -226,7 +224,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 # vertex's wavelengths
                 u_wl = dr.gather(mi.Float, u_wl, dr.arange(mi.UInt32, n) % dr.opaque(mi.UInt32, spp_pass))
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
-        # light subpaths: one per camera sample, or the cache's n_L (whole ones per iteration)
+        # light subpaths: one per sample of each crop pixel of the pass, or the cache's n_L (whole ones
+        # per iteration)
         n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None \
             else spp_pass * pixel_count
         schedule, eta, radius = None, None, None
@@ -235,10 +234,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
                                      spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
-            lanes = dr.arange(mi.UInt32, max(n, 1))          # (a lattice pass without camera samples: unused)
-            eta = schedule.eta(lanes)                        # each sample's eta = pi r^2 N
-            if ctx.media is not None:                        # merges inside media: the ball's radius
-                radius = schedule.radius(schedule.group(lanes))
+            # (max: a lattice pass without camera samples, whose terms are unused)
+            eta, radius = merge_terms(schedule, max(n, 1), ctx.media is not None)
         ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         if k > 1:
@@ -255,14 +252,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         classic estimator's; camera sample j connects to light subpath j."""
         ps.pixel_stride = k
         ps.n_light = n_light
-        ps.light_sampler = ctx.sensor.sampler().clone()
-        ps.light_sampler.set_sample_count(ps.spp_pass)
-        ps.light_sampler.seed(pass_seed(seed, i), n_light)
+        ps.light_sampler = pass_sampler(ctx, ps.spp_pass, seed, i, n_light)
         if ps.schedule is not None:     # merges: the light subpaths' own etas (and radii in media)
-            group = ps.schedule.group(dr.arange(mi.UInt32, n_light))
-            radius = ps.schedule.radius(group) if ctx.media is not None else None
-            ps.mis_light = ctx.mis.for_pass(ps.schedule.eta(dr.arange(mi.UInt32, n_light)), radius=radius,
-                                            beams=ctx.beams)
+            eta, radius = merge_terms(ps.schedule, n_light, ctx.media is not None)
+            ps.mis_light = ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams)
 
     def cache_pass_state(self, ctx, ps, seed, i, n_light, merging):
         """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
@@ -270,19 +263,13 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         camera samples' (``merging``: their eta and, with media, radius), and the light subpaths'
         of their iterations in ``mis_light``)."""
         ps.n_light = n_light
-        ps.light_sampler = ctx.sensor.sampler().clone()
-        ps.light_sampler.set_sample_count(ps.spp_pass)
-        ps.light_sampler.seed(pass_seed(seed, PILOT_PASS + 1 + i), n_light)
+        ps.light_sampler = pass_sampler(ctx, ps.spp_pass, seed, PILOT_PASS + 1 + i, n_light)
         ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
         vpp, c = self.cache_run
         counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
         eta, radius = merging
         ps.mis = ctx.mis.for_pass(eta, counts, radius, ctx.beams)
-        eta_light, radius_light = None, None
-        if eta is not None:
-            eta_light = ps.schedule.eta(dr.arange(mi.UInt32, n_light))
-        if radius is not None:
-            radius_light = ps.schedule.radius(ps.schedule.group(dr.arange(mi.UInt32, n_light)))
+        eta_light, radius_light = merge_terms(ps.schedule, n_light, ctx.media is not None)
         ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light, ctx.beams)
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
@@ -438,3 +425,13 @@ def camera_lattice(ctx, pixel_start, pixel_count):
     k = lattice_step(ctx)
     v0 = -(-pixel_start // k)
     return v0, -(-(pixel_start + pixel_count) // k) - v0
+
+
+def merge_terms(schedule, n, media):
+    """(eta, radius) of lanes 0 .. n-1 of a pass (camera samples or light subpaths, a pixel's
+    samples consecutive) under its merge.MergeSchedule: each one's eta = pi r^2 N of its
+    iteration and, with media (``media``), its ball's radius; (None, None) without merging."""
+    if schedule is None:
+        return None, None
+    lanes = dr.arange(mi.UInt32, n)
+    return schedule.eta(lanes), (schedule.radius(schedule.group(lanes)) if media else None)

@@ -10,7 +10,7 @@ a render whose trace records a virtual call, then sees an instance of that domai
 freed, then records the same call again, aborts when the kernel is compiled (with an empty kernel
 cache; a cached kernel is never compiled). Reproduced in a few lines: two homogeneous media, a
 ``get_majorant`` call through pointers to the first, the second deleted, the same call again,
-``dr.eval`` (``docs/design.md``, "Traced kernels and Python's garbage collector").
+``dr.eval`` (``docs/design.md``, "Traced kernels and the garbage collector").
 
 Nothing in this package creates or frees such an object while tracing. Python's cyclic garbage
 collector may: it runs at any allocation, in any thread, and frees whatever an earlier scene left

@@ -27,7 +27,7 @@ that rank (``LightCache``): exact, and two passes over the store."""
 import drjit as dr
 import mitsuba as mi
 
-from .passes import pass_seed
+from .passes import pass_sampler
 
 PILOT_PATHS = 1 << 13           # light subpaths of the pilot pass: V / n_L to ~1% (it only sets MIS counts)
 PILOT_PASS = 1 << 24            # the pilot's pass index for pass_seed: no render has that many
@@ -98,9 +98,7 @@ def pilot(integrator, ctx, seed, n_light):
     cap = integrator.light_capacity(ctx)
     if cap <= 0:
         return 0.0
-    sampler = ctx.sensor.sampler().clone()
-    sampler.set_sample_count(1)
-    sampler.seed(pass_seed(seed, PILOT_PASS), n)
+    sampler = pass_sampler(ctx, 1, seed, PILOT_PASS, n)
     ps = PassState(sampler, n, 1, 0, None, ctx.mis)
     ps.store = LightStore(n=n, capacity=cap, record=ctx.record)
     ps.pilot = True

@@ -108,6 +108,15 @@ def count_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
     return spp * -(-n_pixels // budget)
 
 
+def pass_sampler(ctx, spp_pass, seed, index, n):
+    """A clone of the sensor's sampler for ``n`` lanes of ``spp_pass`` samples a pixel, seeded
+    with pass_seed(seed, index)."""
+    sampler = ctx.sensor.sampler().clone()
+    sampler.set_sample_count(spp_pass)
+    sampler.seed(pass_seed(seed, index), n)
+    return sampler
+
+
 class PassState:
     """What the kernels of one pass share besides the Context (a plain class: Dr.Jit does not
     traverse it, so nothing here becomes loop state). Set by the integrator's render_pass."""
