@@ -15,7 +15,9 @@ reported; the ratio to volpath is taken at the same checkpoint, the time column 
 was reached). ``--region no-delta`` measures only the pixels that do not see glass (the caustic
 cone in the fog, not the caustic seen through the sphere, which no connection renders).
 relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels (as bench_light_cache.py). The
-reference's own error is part of every figure: on the caustic, `volpath` and `volpathmis`
+reference's own error is part of every figure; it is estimated from the reference's two halves
+(independent seeds) and printed, and each figure is also given less it (as bench_light_cache.py).
+On the caustic, `volpath` and `volpathmis`
 converge slowly (that is the point of the scene), so the default reference is bdpt (its
 agreement with volpath on these scenes is tested), at many more samples than any contestant reaches."""
 
@@ -70,18 +72,29 @@ def region(path, args):
 
 
 def reference(path, args):
-    """``--ref-integrator`` at --ref-spp in batches of 64, cached by scene, resolution, depth,
-    integrator and Mitsuba's version."""
+    """The two halves of ``--ref-integrator`` at --ref-spp (independent seeds, batches of 64),
+    cached by scene, resolution, depth, integrator and Mitsuba's version; their mean is the
+    reference and their difference its own error (own_error)."""
     key = hashlib.sha1(repr((os.path.abspath(path), args.res, args.max_depth, args.ref_spp, args.ref_integrator,
                              mi.__version__, mi.variant())).encode()).hexdigest()[:16]
-    cached = os.path.join(args.cache_dir, f'media-ref-{key}.npy')
+    cached = os.path.join(args.cache_dir, f'media-ref-halves-{key}.npy')
     if os.path.exists(cached):
         return np.load(cached)
     scene, integ = load(path, args.res, args.max_depth, integrator(args.ref_integrator, args.max_depth))
-    ref = long_render(scene, integ, args.ref_spp)
+    n = max(args.ref_spp // 2, 1)
+    halves = np.stack([long_render(scene, integ, n), long_render(scene, integ, n, seed0=10_000 + (1 << 24))])
     os.makedirs(args.cache_dir, exist_ok=True)
-    np.save(cached, ref)
-    return ref
+    np.save(cached, halves)
+    return halves
+
+
+def own_error(halves, mask=None):
+    """The reference's own relMSE over ``mask``: mean((A - B)^2 / 4 / (R^2 + 1e-2)), R = (A + B) / 2
+    (the variance of the mean of two independent halves), which every contestant's figure holds
+    on top of its own."""
+    ref = halves.mean(axis=0)
+    e = (halves[0] - halves[1]) ** 2 / 4 / (ref ** 2 + 1e-2)
+    return float(np.mean(e if mask is None else e[mask]))
 
 
 def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
@@ -106,16 +119,18 @@ def measure(path, name, ref, args, mask=None):
     return [tuple(float(np.median([run[i][j] for run in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
 
 
-def table(key, rows):
-    """Print one scene's table: time, spp, relMSE and the ratio to volpath's at the same checkpoint."""
+def table(key, rows, ref_err):
+    """Print one scene's table: time, spp, relMSE, relMSE less the reference's own, and its ratio to
+    volpath's (likewise less the reference's) at the same checkpoint."""
     base = rows.get('volpath')
+    own = lambda e: max(e - ref_err, 0.0)      # noqa: E731
     print(f'\n## {key}\n')
-    print('| integrator | time s | spp | relMSE (median) | relMSE / volpath at equal time |')
-    print('|---|---|---|---|---|')
+    print("| integrator | time s | spp | relMSE (median) | less the reference's | / volpath's at equal time |")
+    print('|---|---|---|---|---|---|')
     for name, r in rows.items():
         for i, (secs, spp, err) in enumerate(r):
-            ratio = f'{err / base[i][2]:.3g}' if base and base[i][2] > 0 else '-'
-            print(f'| {name} | {secs:.1f} | {spp:.0f} | {err:.4g} | {ratio} |')
+            ratio = f'{own(err) / own(base[i][2]):.3g}' if base and own(base[i][2]) > 0 else '-'
+            print(f'| {name} | {secs:.1f} | {spp:.0f} | {err:.4g} | {own(err):.4g} | {ratio} |')
 
 
 def main():
@@ -144,12 +159,14 @@ def main():
     for key in args.scenes.split(','):
         path = SCENES.get(key, key)
         t0 = time.perf_counter()
-        ref = reference(path, args)
+        halves = reference(path, args)
+        ref = halves.mean(axis=0)
         mask = region(path, args)
         share = 1.0 if mask is None else mask.mean()
-        print(f'# {key}: {path}, reference in {time.perf_counter() - t0:.0f} s (0 if cached), '
-              f'region {args.region} ({share:.0%} of the pixels)')
-        table(key, {name: measure(path, name, ref, args, mask) for name in args.integrators.split(',')})
+        ref_err = own_error(halves, mask)
+        print(f'# {key}: {path}, reference in {time.perf_counter() - t0:.0f} s (0 if cached), its own relMSE '
+              f'{ref_err:.3g}; region {args.region} ({share:.0%} of the pixels)')
+        table(key, {name: measure(path, name, ref, args, mask) for name in args.integrators.split(',')}, ref_err)
 
 
 if __name__ == '__main__':
