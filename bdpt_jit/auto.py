@@ -29,6 +29,11 @@ SIGGRAPH 2022) and each candidate's measured time.
    few per cent, and timing noise alone decided between them). The render then runs the chosen
    candidate with the caller's seed and spp.
 
+4. Again as the render goes (segment_spp, rechoose, segment_weights): a long render decides
+   again once it has run REDECIDE times as long as its decisions took (then REDECIDE^2 ...),
+   from another pilot pooled with the earlier ones, and combines its segments' images with
+   inverse-variance weights from the pilots' predictions (docs/light-cache.md).
+
 The choice depends on the pilot's and the trials' samples only, which share none with the render
 (``pass_seed`` keeps seeds ``seed + 2^30`` and up apart from the render's passes), so the image
 is the chosen candidate's image: unbiased where that candidate is (the issue's second option:
@@ -55,6 +60,10 @@ TIMED_MERGING = (0.25, 1)       # the merging cache whose time is measured (with
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
 PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
+REDECIDE = 16.0                 # the render decides again once it has run this many times as long as
+                                # its decisions so far took, then 16 times as long, ... (segments)
+MAX_DECISIONS = 4               # decisions in one render at most, the first included
+SEGMENT_SEED = 1 << 29          # segment k of a render renders with the caller's seed plus k times this
 
 
 class Trial:
@@ -69,8 +78,10 @@ class Trial:
         self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.timings = 0                # how many: its seconds are their minimum (a second job's load only adds)
-        self.rel_var = None             # v: predicted relative MSE at one sample per pixel
-        self.missed = None              # the share of the image none of its strategies samples
+        self.rel_var = None             # v: predicted relative MSE at one sample per pixel (the pilots' mean)
+        self.missed = None              # the share of the image none of its strategies samples (likewise)
+        self.pilot_vars = []            # v from each pilot of the render (pilot)
+        self.pilot_missed = []          # the missed share from each
         self.efficiency = None          # 1 / (v t); 0 where it misses light
 
     def report(self):
@@ -178,28 +189,46 @@ def cost_model(trials):
             tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), 1e-9)
 
 
-def pilot(make, trials, scene, sensor, seed):
-    """The pilot render: each trial's predicted relative MSE at one sample per pixel and the
-    share it misses (moments.MomentFilm.estimates)."""
+def pilot(make, trials, scene, sensor, seed, index=0):
+    """Pilot render ``index`` (0 for the first decision, 1, 2, ... for the later ones, seeds of
+    their own): each trial's predicted relative MSE at one sample per pixel and the share it
+    misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
+    estimates the same quantities from independent samples)."""
     merging = any(tr.merges for tr in trials)
     integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
     integ.moment_counts = [tr.counts for tr in trials]
-    integ.render(scene, sensor, seed=seed + TRIAL_SEED, spp=PILOT_SPP)
+    integ.render(scene, sensor, seed=seed + TRIAL_SEED + 2 * index, spp=PILOT_SPP)
     image, V, missed = integ.moment_film.estimates(PILOT_SPP)
     denom = image ** 2 + DENOM
     for k, tr in enumerate(trials):
-        tr.rel_var = float(np.mean(np.maximum(V[k], 0.0) / denom))
-        tr.missed = float(missed[k])
+        tr.pilot_vars.append(float(np.mean(np.maximum(V[k], 0.0) / denom)))
+        tr.pilot_missed.append(float(missed[k]))
+        tr.rel_var = float(np.mean(tr.pilot_vars))
+        tr.missed = float(np.mean(tr.pilot_missed))
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
-    """(the chosen Trial, every Trial)."""
+    """The first decision of a render: (the chosen Trial, every Trial)."""
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
     spp = trial_spp(sensor)
     for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
         if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
             time_trial(make, tr, scene, sensor, seed, spp)
+    return decide(make, trials, scene, sensor, seed, spp), trials
+
+
+def rechoose(make, trials, scene, sensor, seed, index):
+    """Decision ``index`` (1, 2, ...) of a render: another pilot, pooled with the earlier ones,
+    and the choice again over the trials as they stand (their timings kept; the best by the
+    model and close calls timed as in the first decision). Returns the chosen Trial."""
+    pilot(make, trials, scene, sensor, seed, index)
+    return decide(make, trials, scene, sensor, seed, trial_spp(sensor))
+
+
+def decide(make, trials, scene, sensor, seed, spp):
+    """The most efficient trial (ranked), timing the best by the cost model before it is chosen
+    and both of a close call again (up to TIMINGS each)."""
     while True:
         cost_model(trials)              # again after each timing: its points' times may have fallen
         best, runner = ranked(trials)
@@ -211,7 +240,41 @@ def choose(make, ctx, scene, sensor, seed, vpp):
                 if tr.timings < TIMINGS:
                     time_trial(make, tr, scene, sensor, seed, spp)
         else:
-            return best, trials
+            return best
+
+
+def segment_spp(best, render_s, decided_s, spp_left, index, seconds=None):
+    """The samples per pixel the render takes with ``best`` before decision ``index`` (1, 2, ...),
+    or all of ``spp_left`` where there is none: the render re-decides once it has run REDECIDE
+    ** index times as long as its decisions so far took (``decided_s``; ``render_s`` rendered so
+    far), by ``seconds`` per spp (the render's own, where it has rendered with ``best``; else the
+    trials' kernel time, which leaves out each pass's Python time: the segment then runs
+    longer); not where that leaves less than REDECIDE times a decision's cost to render after
+    it, nor past MAX_DECISIONS."""
+    seconds = seconds or best.seconds
+    if index >= MAX_DECISIONS or not seconds:
+        return spp_left
+    n = int(max(REDECIDE ** index * decided_s - render_s, 0.0) / max(seconds, 1e-12)) + 1
+    cost = decided_s / index                    # a decision's mean cost so far
+    if (spp_left - n) * seconds < REDECIDE * cost:
+        return spp_left
+    return n
+
+
+def segment_weights(segments):
+    """The weights of a render's segments [(Trial, samples per pixel rendered)] in the image:
+    inverse variance, n_k / v_k with v_k the pooled pilots' prediction for the segment's
+    candidate, normalised to sum 1 (a segment of n_k samples per pixel has variance v_k / n_k).
+    The pilots share no sample with the segments, so the weights are independent of the images
+    they weight, and the combination is unbiased where each segment's candidate is; equal
+    candidates get weights in proportion to their samples, as one render of all of them."""
+    v = [tr.rel_var if tr.rel_var is not None and np.isfinite(tr.rel_var) and tr.rel_var > 0 else None
+         for tr, _ in segments]
+    if any(x is None for x in v):
+        v = [1.0] * len(segments)
+    w = [n / x for (_, n), x in zip(segments, v)]
+    total = sum(w)
+    return [x / total for x in w]
 
 
 def ranked(trials):

@@ -122,7 +122,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
 
     def render_auto(self, scene, sensor, seed, spp, evaluate):
         """technique 'auto' (auto.py): a pilot's moment estimates and timed trials choose a
-        configuration, which renders."""
+        configuration, which renders. A long render (a --time one too) decides again as it goes
+        (auto.segment_spp): each segment renders with the configuration chosen before it, from
+        pilots that share no sample with it, and the image is the segments' images combined
+        with auto.segment_weights."""
         from . import auto
         base = {k: v for k, v in self.settings.items() if v is not None}
 
@@ -131,18 +134,82 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)
         crop = sensor.film().crop_size()
-        vpp = pilot(self, ctx, seed, max(256, int(crop[0]) * int(crop[1]))) if ctx.strategies.trace_connect else 0.0
+        n_pixels = int(crop[0]) * int(crop[1])
+        vpp = pilot(self, ctx, seed, max(256, n_pixels)) if ctx.strategies.trace_connect else 0.0
         best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp)
-        trial_s = _time.perf_counter() - t0
-        chosen = make(best.settings)
-        chosen.hooks = self.hooks
-        chosen.merge_iteration = self.merge_iteration
-        image = chosen.render(scene, sensor, seed, spp, True, evaluate)
-        self.strategy_images = chosen.strategy_images
-        self.last_render_info = dict(chosen.last_render_info)
+        decided_s, render_s, segments = _time.perf_counter() - t0, 0.0, []
+        took = [decided_s]                      # each decision's seconds
+        while True:
+            done = sum(seg['spp'] for seg in segments)
+            own = [seg for seg in segments if seg['trial'] is best]       # wall seconds per spp with best
+            per_spp = sum(seg['seconds'] for seg in own) / sum(seg['spp'] for seg in own) if own else None
+            n = auto.segment_spp(best, render_s, decided_s, spp - int(round(done)), len(segments) + 1, per_spp)
+            t1 = _time.perf_counter()
+            segments.append(self.auto_segment(make(best.settings), best, scene, sensor, seed, len(segments),
+                                              n, done, spp, n_pixels, evaluate))
+            segments[-1]['seconds'] = _time.perf_counter() - t1
+            render_s += segments[-1]['seconds']
+            if done + n >= spp or segments[-1]['info']['interrupted']:     # all rendered, or stopped
+                break
+            if self.hooks.stop():               # the stop rule, as between passes
+                segments[-1]['info']['interrupted'] = True
+                break
+            t1 = _time.perf_counter()
+            best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
+            took.append(_time.perf_counter() - t1)
+            decided_s += took[-1]
+        image = self.combine_segments(segments, spp, n_pixels)
         self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.trial_spp(sensor),
-                                         'trial_s': trial_s, 'vertices_per_light_path': vpp,
+                                         'trial_s': decided_s, 'vertices_per_light_path': vpp,
+                                         'decisions': [{'chosen': seg['trial'].name, 'seconds': t, 'spp': seg['spp'],
+                                                        'weight': seg['weight']} for seg, t in zip(segments, took)],
                                          'candidates': [tr.report() for tr in trials]}
+        return image
+
+    def auto_segment(self, chosen, trial, scene, sensor, seed, k, spp, spp_before, spp_total, n_pixels, evaluate):
+        """Segment ``k`` of an auto render: ``spp`` samples per pixel of the ``chosen`` integrator
+        (``trial``'s configuration), seeded with seed + k auto.SEGMENT_SEED (segment 0: the
+        caller's seed), its progress reported after the ``spp_before`` of earlier segments."""
+        from .auto import SEGMENT_SEED
+        offset = int(round(spp_before * n_pixels))
+        chosen.hooks = RenderHooks(on_pass=lambda done, _: self.hooks.passed(offset + done, spp_total * n_pixels),
+                                   should_stop=self.hooks.stop)
+        chosen.merge_iteration = self.merge_iteration
+        image = chosen.render(scene, sensor, seed + k * SEGMENT_SEED if k else seed, spp, True, evaluate)
+        self.merge_iteration = chosen.merge_iteration
+        info = dict(chosen.last_render_info)
+        return {'trial': trial, 'image': image, 'layers': chosen.strategy_images, 'info': info,
+                'spp': info['samples'] / n_pixels}
+
+    def combine_segments(self, segments, spp, n_pixels):
+        """The image of an auto render's segments (auto.segment_weights), its strategy layers
+        (weighted: combined alike, so they still sum to the image; unweighted: those of the
+        segments that rendered the last segment's configuration, in proportion to their samples,
+        as the strategies traced are that configuration's) and last_render_info (the last
+        segment's, with the samples, passes and ray counts of all)."""
+        from .auto import segment_weights
+        weights = segment_weights([(seg['trial'], seg['spp']) for seg in segments])
+        for seg, w in zip(segments, weights):
+            seg['weight'] = w
+        image = segments[0]['image']
+        if len(segments) > 1:
+            image = sum((seg['image'] * w for seg, w in zip(segments[1:], weights[1:])), image * weights[0])
+            dr.eval(image)
+        layers = None
+        if all(seg['layers'] is not None for seg in segments):
+            same = [seg for seg in segments if seg['trial'] is segments[-1]['trial']]
+            n_same = sum(seg['spp'] for seg in same)
+            layers = {name: {'weighted': sum(seg['layers'][name]['weighted'] * w for seg, w in zip(segments, weights)),
+                             'unweighted': sum(seg['layers'][name]['unweighted'] * (seg['spp'] / n_same) for seg in same)}
+                      for name in segments[-1]['layers']}
+        self.strategy_images = layers
+        info = dict(segments[-1]['info'])
+        info.update(spp=spp, samples=sum(seg['info']['samples'] for seg in segments),
+                    passes=sum(seg['info']['passes'] for seg in segments),
+                    interrupted=any(seg['info']['interrupted'] for seg in segments))
+        if all('rays' in seg['info'] for seg in segments):
+            info['rays'] = {key: sum(seg['info']['rays'][key] for seg in segments) for key in info['rays']}
+        self.last_render_info = info
         return image
 
     def run_passes(self, ctx, acc, seed, spp, n_pixels):

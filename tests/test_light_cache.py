@@ -336,6 +336,74 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
                                rtol=1e-4, atol=1e-6)
 
 
+def test_auto_decides_again_as_the_render_goes(monkeypatch):
+    """A long render decides again (auto.segment_spp): each segment renders with the candidate
+    chosen before it, from pilots of seeds of their own pooled with the earlier ones (each
+    trial's v the mean of the pilots'), segment k with seed + k SEGMENT_SEED, and the image is
+    the segments' images weighted by n_k / v_k normalised (auto.segment_weights: independent of
+    the images, so the combination is unbiased where each candidate is). REDECIDE made tiny, and
+    the later choices forced to other candidates, so that four segments of three
+    configurations combine: the image equals the weighted sum of those configurations rendered
+    alone with those seeds and spp, and the weighted strategy layers still sum to it."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, 'REDECIDE', 1e-6)
+    forced, rechoose = iter(['pt', 'bdpt', 'cache 1x1']), auto.rechoose
+
+    def forced_rechoose(make, trials, *args):
+        rechoose(make, trials, *args)
+        name = next(forced)
+        return next(tr for tr in trials if tr.name == name)
+    monkeypatch.setattr(auto, 'rechoose', forced_rechoose)
+    scene = load_scene('cornell-box.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'strategy_images': True})
+    img = np.array(mi.render(scene, integrator=integ, spp=64, seed=5))
+    info = integ.last_render_info
+    decisions, cands = info['auto']['decisions'], {c['name']: c for c in info['auto']['candidates']}
+    assert [d['chosen'] for d in decisions[1:]] == ['pt', 'bdpt', 'cache 1x1']
+    assert [d['spp'] for d in decisions] == [1, 1, 1, 61] and info['samples'] == 64 * 16 * 16
+    v = [cands[d['chosen']]['relmse_1spp'] for d in decisions]
+    w = np.array([d['spp'] for d in decisions]) / np.array(v)
+    np.testing.assert_allclose([d['weight'] for d in decisions], w / w.sum(), rtol=1e-12)
+    expect = 0.0
+    for k, d in enumerate(decisions):
+        alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **cands[d['chosen']]['settings']})
+        seed = 5 + k * auto.SEGMENT_SEED if k else 5
+        expect = expect + d['weight'] * np.array(mi.render(scene, integrator=alone, spp=int(d['spp']), seed=seed))
+    np.testing.assert_allclose(img, expect, rtol=1e-4, atol=1e-6)
+    layers = sum(layer['weighted'] for layer in integ.strategy_images.values())
+    np.testing.assert_allclose(layers, img[:, :, :3], rtol=1e-4, atol=1e-6)
+
+
+def test_auto_segment_plan():
+    """When a render decides again: once it has run REDECIDE ** k times as long as its k
+    decisions took (by the chosen candidate's seconds per spp), not where what is left to render
+    after the segment is under REDECIDE times a decision's mean cost, not past MAX_DECISIONS."""
+    from bdpt_jit import auto
+    best = auto.Trial('pt', {}, (0.0, 0.0, 0.0))
+    best.seconds = 0.01
+    R = auto.REDECIDE
+    assert auto.segment_spp(best, 0.0, 1.0, 10 ** 6, 1) == int(R * 1.0 / 0.01) + 1
+    assert auto.segment_spp(best, 16.0, 2.0, 10 ** 7, 2) == int((R ** 2 * 2.0 - 16.0) / 0.01) + 1
+    assert auto.segment_spp(best, 0.0, 1.0, int(R / 0.01) + 1 + int(R / 0.01) - 1, 1) == 2 * int(R / 0.01)
+    assert auto.segment_spp(best, 0.0, 1.0, 10 ** 9, auto.MAX_DECISIONS) == 10 ** 9
+
+
+def test_auto_stops_between_segments(monkeypatch):
+    """The render's stop rule (RenderHooks.should_stop) ends an auto render as a fixed one: after
+    its first pass, without deciding again, the samples done and 'interrupted' reported."""
+    from bdpt_jit import auto
+    from bdpt_jit.passes import RenderHooks
+    monkeypatch.setattr(auto, 'REDECIDE', 1e-6)
+    scene = load_scene('cornell-box.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'samples_per_pass': 256})
+    seen = []
+    integ.hooks = RenderHooks(on_pass=lambda done, total: seen.append((done, total)), should_stop=lambda: True)
+    img = np.array(mi.render(scene, integrator=integ, spp=64, seed=5))
+    info = integ.last_render_info
+    assert info['interrupted'] and info['samples'] == 256 and len(info['auto']['decisions']) == 1
+    assert seen == [(256, 64 * 256)] and np.all(np.isfinite(img))
+
+
 def test_auto_refuses_what_it_chooses_itself():
     with pytest.raises(Exception, match="chosen by technique 'auto'"):
         mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})

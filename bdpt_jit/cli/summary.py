@@ -100,7 +100,10 @@ def _bdpt_statistics(info):
                           f"{media['medium_inconsistencies']:,} connections refused (their ends disagree about the medium)")
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
-        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials; predicted relMSE at "
+        decided = a.get('decisions', [])
+        steps = '' if len(decided) < 2 else ' (decided {} times: {})'.format(len(decided), ', '.join(
+            f"{d['chosen']} {d['spp']:.4g} spp weight {d['weight']:.3g} after {d['seconds']:.2f} s" for d in decided))
+        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials{steps}; predicted relMSE at "
                          "1 spp x s/spp: " + ', '.join(
                              f"{c['name']} {c['relmse_1spp']:.3g} x {c['seconds_per_spp']:.3g}"
                              + (f" (misses {c['missed']:.1%})" if c['efficiency'] == 0 else '')
