@@ -94,9 +94,10 @@ def offers_merging(ctx):
     """Whether merging candidates are offered: where connections exist (merges need a light
     vertex and a camera vertex, as they do) and the scene has a BSDF with a glossy or delta lobe,
     or shapes this test cannot see (instances). Among diffuse surfaces only, a merge samples the
-    paths that a connection samples with a density as good, and costs a gather."""
+    paths that a connection samples with a density as good, and costs a gather. Not with
+    ``strategy_images``: no (s,t) layer holds a merge."""
     from .scene_check import scene_has_lobe
-    if not ctx.strategies.trace_connect or ctx.ad:
+    if not ctx.strategies.trace_connect or ctx.ad or ctx.layers is not None:
         return False
     return scene_has_lobe(ctx.scene, mi.BSDFFlags.Glossy, mi.BSDFFlags.Delta)
 

@@ -404,6 +404,20 @@ def test_auto_stops_between_segments(monkeypatch):
     assert seen == [(256, 64 * 256)] and np.all(np.isfinite(img))
 
 
+def test_auto_with_strategy_images_leaves_merging_out():
+    """strategy_images with technique auto in a scene that would offer merging (the caustic's
+    glass): no merging candidate (no (s,t) layer holds a merge; the pilot then does not merge,
+    and before this the pilot's vcm integrator refused the parameter), and the weighted layers
+    sum to the image."""
+    scene = load_scene('caustic.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'strategy_images': True})
+    img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
+    names = [c['name'] for c in integ.last_render_info['auto']['candidates']]
+    assert names[:2] == ['pt', 'bdpt'] and not any('vcm' in n for n in names)
+    layers = sum(layer['weighted'] for layer in integ.strategy_images.values())
+    np.testing.assert_allclose(layers, img[:, :, :3], rtol=1e-4, atol=1e-6)
+
+
 def test_auto_refuses_what_it_chooses_itself():
     with pytest.raises(Exception, match="chosen by technique 'auto'"):
         mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})
