@@ -64,6 +64,8 @@ REDECIDE = 16.0                 # the render decides again once it has run this 
                                 # its decisions so far took, then 16 times as long, ... (segments)
 MAX_DECISIONS = 4               # decisions in one render at most, the first included
 SEGMENT_SEED = 1 << 29          # segment k of a render renders with the caller's seed plus k times this
+PER_PIXEL = 1.1                 # a per-pixel candidate is chosen only if this many times as efficient
+                                # as the best of the others (its v is the least of noisy estimates per pixel)
 
 
 class Trial:
@@ -83,11 +85,20 @@ class Trial:
         self.pilot_vars = []            # v from each pilot of the render (pilot)
         self.pilot_missed = []          # the missed share from each
         self.efficiency = None          # 1 / (v t); 0 where it misses light
+        self.pixel_var = None           # v per crop pixel (the pilots' mean; None where the film keeps a lattice)
+        self.parts = None               # a per-pixel candidate's caches (per_pixel_trials), else None
+        self.pixel_counts = None        # and its pixel_counts.PixelCounts
+        self.pick = None                # and per pixel the index of its cache in parts
 
     def report(self):
-        return {'name': self.name, 'settings': self.settings, 'counts': self.counts,
-                'seconds_per_spp': self.seconds, 'timed': self.timed, 'timings': self.timings, 'relmse_1spp': self.rel_var,
-                'missed': self.missed, 'efficiency': self.efficiency}
+        out = {'name': self.name, 'settings': self.settings, 'counts': self.counts,
+               'seconds_per_spp': self.seconds, 'timed': self.timed, 'timings': self.timings, 'relmse_1spp': self.rel_var,
+               'missed': self.missed, 'efficiency': self.efficiency}
+        if self.pixel_counts is not None:
+            out['pixel_counts'] = {'connections': self.pixel_counts.connections.tolist(),
+                                   'merges': None if self.pixel_counts.merges is None
+                                   else self.pixel_counts.merges.tolist()}
+        return out
 
 
 def offers_merging(ctx):
@@ -156,7 +167,7 @@ def trial_spp(sensor):
 def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
     kernels' time in a render of ``spp`` (trial_spp), the least over its timings."""
-    integ = make(trial.settings)
+    integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))
     t = max(t, 1e-9) / spp
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
@@ -195,17 +206,24 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     their own): each trial's predicted relative MSE at one sample per pixel and the share it
     misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
     estimates the same quantities from independent samples)."""
+    trials = [tr for tr in trials if tr.parts is None]          # (per-pixel candidates: from these)
     merging = any(tr.merges for tr in trials)
     integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
     integ.moment_counts = [tr.counts for tr in trials]
     integ.render(scene, sensor, seed=seed + TRIAL_SEED + 2 * index, spp=PILOT_SPP)
-    image, V, missed = integ.moment_film.estimates(PILOT_SPP)
+    film = integ.moment_film
+    image, V, missed = film.estimates(PILOT_SPP)
     denom = image ** 2 + DENOM
     for k, tr in enumerate(trials):
-        tr.pilot_vars.append(float(np.mean(np.maximum(V[k], 0.0) / denom)))
+        rel = np.maximum(V[k], 0.0) / denom
+        tr.pilot_vars.append(float(np.mean(rel)))
         tr.pilot_missed.append(float(missed[k]))
         tr.rel_var = float(np.mean(tr.pilot_vars))
         tr.missed = float(np.mean(tr.pilot_missed))
+        if film.step == 1:          # per pixel (a crop the film keeps whole): the pilots' mean too
+            rel = rel.reshape(film.pixels.h, film.pixels.w)
+            n = len(tr.pilot_vars)
+            tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
@@ -216,15 +234,75 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
         if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
             time_trial(make, tr, scene, sensor, seed, spp)
+    cost_model(trials)
+    trials += per_pixel_trials(trials)
     return decide(make, trials, scene, sensor, seed, spp), trials
 
 
 def rechoose(make, trials, scene, sensor, seed, index):
     """Decision ``index`` (1, 2, ...) of a render: another pilot, pooled with the earlier ones,
     and the choice again over the trials as they stand (their timings kept; the best by the
-    model and close calls timed as in the first decision). Returns the chosen Trial."""
+    model and close calls timed as in the first decision; the per-pixel candidates' maps made
+    again from the pooled pilots). Returns the chosen Trial."""
     pilot(make, trials, scene, sensor, seed, index)
+    cost_model(trials)
+    trials[:] = [tr for tr in trials if tr.parts is None] + per_pixel_trials(trials)
     return decide(make, trials, scene, sensor, seed, trial_spp(sensor))
+
+
+def box3(a):
+    """The mean over each pixel's 3 x 3 neighbourhood (edges repeated)."""
+    p = np.pad(a, 1, mode='edge')
+    h, w = a.shape
+    return sum(p[i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
+
+
+def assign(parts, rounds=8):
+    """Per pixel, the index of the cache in ``parts`` for a per-pixel candidate: the least
+    (mean v) (mean t) over the image is where each pixel takes the least v(p) + lambda t with
+    lambda = mean v / mean t of the assignment (the Lagrangian of the product; a pixel's own
+    v(p) t would let the few pixels that hold most of the variance decide nothing and the many
+    others buy small gains at full cost); lambda from the best cache's, then refined. v
+    filtered over each pixel's 3 x 3 neighbourhood."""
+    fv = np.stack([box3(tr.pixel_var) for tr in parts])
+    t = np.array([max(tr.seconds, 1e-12) for tr in parts])
+    v = np.stack([tr.pixel_var for tr in parts])
+    k = int(np.argmin(fv.mean(axis=(1, 2)) * t))
+    lam = fv[k].mean() / t[k]
+    for _ in range(rounds):
+        pick = np.argmin(fv + lam * t[:, None, None], axis=0)
+        lam = np.mean(np.take_along_axis(v, pick[None], 0)) / np.mean(t[pick])
+    return pick
+
+
+def per_pixel_trials(trials):
+    """For each light_paths, the candidate that renders every pixel with the cache of that
+    light_paths (connections c, merging or not) whose v t is least there, v filtered over the
+    pixel's 3 x 3 neighbourhood (the pilots' few samples a pixel alone are too noisy to decide
+    on) and the image's time in the balance (``assign``); its v the mean over pixels of the
+    chosen caches' (unfiltered), its t the mean of their t (the cost model is linear in c and in
+    the merges). None where the pilot kept a lattice, or
+    where every pixel takes the same cache (the global candidate)."""
+    from .pixel_counts import PixelCounts
+    out = []
+    for lp in LIGHT_PATHS:
+        parts = [tr for tr in trials if tr.cache is not None and tr.cache[0] == lp and tr.pixel_var is not None]
+        if len(parts) < 2:
+            continue
+        pick = assign(parts)
+        if np.all(pick == pick.flat[0]):
+            continue
+        merges = np.array([tr.merges for tr in parts])[pick]
+        counts = PixelCounts(np.array([tr.cache[1] for tr in parts])[pick], merges if merges.any() else None)
+        vcm = {'technique': 'vcm', 'merge_everywhere': True} if merges.any() else {}
+        per_c = parts[0].counts[0] / parts[0].cache[1]         # n_c per connection: 1 / (V / n_L)
+        tr = Trial(f"cache {lp:g}x per pixel", {**vcm, 'light_paths': lp, 'connections': 1},
+                   (counts.mean_connections() * per_c, lp, lp * counts.merge_share()))
+        tr.parts, tr.pixel_counts, tr.pick = parts, counts, pick
+        tr.rel_var = float(np.mean(np.choose(pick, [p.pixel_var for p in parts])))
+        tr.missed = max(p.missed for p in parts)
+        out.append(tr)
+    return out
 
 
 def decide(make, trials, scene, sensor, seed, spp):
@@ -232,6 +310,9 @@ def decide(make, trials, scene, sensor, seed, spp):
     and both of a close call again (up to TIMINGS each)."""
     while True:
         cost_model(trials)              # again after each timing: its points' times may have fallen
+        for tr in trials:               # a per-pixel candidate's t: the mean of its pixels' caches'
+            if tr.parts is not None and not tr.timed:
+                tr.seconds = float(np.mean(np.choose(tr.pick, [p.seconds for p in tr.parts])))
         best, runner = ranked(trials)
         if not best.timed:          # the best by the model is timed before it is chosen
             time_trial(make, best, scene, sensor, seed, spp)
@@ -286,5 +367,6 @@ def ranked(trials):
         ok = tr.missed < MAX_MISSED
         t = tr.seconds if pt is None else max(tr.seconds, pt.seconds)   # pt's work and more
         tr.efficiency = 1.0 / max(tr.rel_var * t, 1e-30) if ok else 0.0
-    order = sorted(trials, key=lambda tr: -tr.efficiency * (PREFER_PT if tr is pt else 1.0))
+    order = sorted(trials, key=lambda tr: -tr.efficiency * (PREFER_PT if tr is pt else 1.0)
+                   / (PER_PIXEL if tr.parts is not None else 1.0))
     return order[0], (order[1] if len(order) > 1 and order[1].efficiency > 0 else None)

@@ -40,6 +40,7 @@ class CameraTracer:
         self.ctx, self.ps = ctx, ps
         self.mis = ps.mis
         self.film_pos = None        # each sample's film position (set by trace: the strategy layers)
+        self.lanes = None           # per-pixel counts: the lanes' PixelLanes (set by trace)
 
     def primary(self):
         """Camera rays for the pass's samples: spp_pass consecutive samples per pixel of the
@@ -225,11 +226,14 @@ class CameraTracer:
         """Sum of the connections of camera vertex ``v`` to c vertices drawn uniformly from the
         pass's light vertex cache (light_cache.py), each weighted by V / (c n_L)."""
         cache, sampler = self.ps.cache, self.ps.sampler     # (named: the sampler is loop state)
+        c, scale = cache.c, cache.scale
+        if self.lanes is not None:      # per-pixel counts: c(p) draws, each weighted V / (c(p) n_L)
+            c, scale = self.lanes.c, cache.scale_for(self.lanes.c)
         L = mi.Spectrum(0.0)
         j = mi.UInt32(0)
-        while dr.hint(active & (j < cache.c), label='bdpt_connect_cache'):
+        while dr.hint(active & (j < c), label='bdpt_connect_cache'):
             slot, level, ok = cache.draw((sampler.next_1d(), sampler.next_1d()), active)
-            L += self.strategy_st(slot, level, v, sub, ok, merge_z, cache.scale)
+            L += self.strategy_st(slot, level, v, sub, ok, merge_z, scale)
             j += 1
         return L
 
@@ -285,7 +289,8 @@ class CameraTracer:
         st = MISState(d_vcm + zero, d_vc + zero, zero, zero, zero)
         sub = Subpath(beta, mi.Float(1.0), st, dr.zeros(mi.UInt32, n), dr.full(mi.Bool, True, n))
         seg = Segment(None, ray, medium_at_sensor(c.sensor, n), self.segment_end(ray, hit), sub, True)
-        return self.ps.beams.gather(dr.arange(mi.UInt32, n), seg, sub.active, film_pos)
+        active = sub.active if self.lanes is None else sub.active & self.lanes.merge
+        return self.ps.beams.gather(dr.arange(mi.UInt32, n), seg, active, film_pos)
 
     @staticmethod
     def segment_end(ray, hit):
@@ -300,6 +305,8 @@ class CameraTracer:
         L, prev, prev_delta = carry
         offered = self.mis.merge_here_camera(was_delta)
         active = scattered.active if offered is True else scattered.active & offered
+        if self.lanes is not None:
+            active = active & self.lanes.merge
         seg = Segment(v, ray, v.medium_towards(ray.d), self.segment_end(ray, hit), scattered, False)
         return L + self.ps.beams.gather(self.idx, seg, active, self.film_pos), prev, prev_delta
 
@@ -310,6 +317,9 @@ class CameraTracer:
         """Trace the pass's camera subpaths, evaluate every camera-side strategy at each vertex
         and put the samples on the film."""
         ps = self.ps
+        if self.ctx.pixel_counts is not None:   # (before any weight: the first hit's s=0 has one)
+            self.lanes = PixelLanes(self.ctx.pixel_counts, ps)
+            self.mis.eval_counts = self.lanes.counts
         film_pos, ray, si, L, alpha, aov_values, sub = self.first_hit()
         wavelengths = ray.wavelengths
         self.idx = dr.arange(mi.UInt32, ps.n)
@@ -348,6 +358,8 @@ class CameraTracer:
         if c.strategies.trace_merge:
             if ps.beams is not None:      # inside media the segments merge (beams.py, ``segment``)
                 merge_mask = merge_mask & ~v.in_medium
+            if self.lanes is not None:    # per-pixel counts: merges where the pixel's map has them
+                merge_mask = merge_mask & self.lanes.merge
             L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask, self.film_pos)
         return sub, (L, prev, prev_delta), merge_here
 
@@ -358,3 +370,13 @@ class CameraTracer:
         if self.ctx.strategies.trace_env:
             L = L + self.strategy_s0_env(ray, prev, sub.depth + 1, sub.beta, sub.mis, sub.active & ~si.is_valid())
         return L, prev, was_delta
+
+
+class PixelLanes:
+    """The camera lanes' per-pixel counts (pixel_counts.py), one field a line."""
+
+    def __init__(self, pixel_counts, ps):
+        pixel = dr.arange(mi.UInt32, ps.n) // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
+        self.c = pixel_counts.c_at(pixel)                       # cached vertices each camera vertex draws
+        self.merge = pixel_counts.merge_at(pixel)               # whether it merges
+        self.counts = pixel_counts.counts(pixel, ps.vpp, ps.n_lt)   # (n_c, n_lt, n_m) of its MIS

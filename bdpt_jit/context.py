@@ -129,6 +129,7 @@ class Context:
         self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
         self.moments = None         # moments.MomentFilm of technique auto's pilot (moments.instrument)
+        self.pixel_counts = None    # pixel_counts.PixelCounts of auto's per-pixel candidate (BDPTIntegrator.per_pixel)
         self.stats = RayStats() if settings['statistics'] else None
         self.sampling = ADSampling(self) if ad else Sampling(self)
         self.light_cache = self.cache_settings(settings)

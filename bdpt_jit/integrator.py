@@ -57,6 +57,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
         self.moment_counts = None       # technique auto's pilot: the candidates' (n_c, n_lt) (moments.py)
         self.moment_film = None         # its moments.MomentFilm after a render
+        self.pixel_counts = None        # technique auto's per-pixel candidate: pixel_counts.PixelCounts
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -68,7 +69,22 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if self.moment_counts is not None:        # technique auto's pilot (moments.py)
             from .moments import instrument
             self.moment_film = instrument(ctx, self.moment_counts)
+        if self.pixel_counts is not None:         # technique auto's per-pixel candidate
+            self.per_pixel(ctx, sensor)
         return ctx
+
+    def per_pixel(self, ctx, sensor):
+        """Context ``ctx`` made to render with self.pixel_counts (pixel_counts.py): its weights
+        moments.FamilyMIS's under the render's heuristic, dotted with each lane's pixel's counts,
+        its stored records carrying the families."""
+        from .moments import FamilyMIS, family_record
+        crop = sensor.film().crop_size()
+        if ctx.light_cache is None or ctx.ad or self.pixel_counts.pixels != int(crop[0]) * int(crop[1]):
+            raise ValueError('bdpt: per-pixel counts need the light vertex cache (light_paths), no '
+                             'derivatives and a map of the crop\'s pixels')
+        ctx.mis = FamilyMIS(ctx.strategies, kind=self.settings['mis'], merge_everywhere=ctx.mis.merge_everywhere)
+        ctx.record = family_record(ctx.record)
+        ctx.pixel_counts = self.pixel_counts
 
     def light_capacity(self, ctx: Context) -> int:
         return light_capacity(ctx.strategies, ctx.max_depth_edges, ctx.unbounded)
@@ -129,8 +145,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         from . import auto
         base = {k: v for k, v in self.settings.items() if v is not None}
 
-        def make(settings):
-            return BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
+        def make(settings, pixel_counts=None):
+            integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
+            integ.pixel_counts = pixel_counts
+            return integ
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)
         crop = sensor.film().crop_size()
@@ -145,7 +163,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             per_spp = sum(seg['seconds'] for seg in own) / sum(seg['spp'] for seg in own) if own else None
             n = auto.segment_spp(best, render_s, decided_s, spp - int(round(done)), len(segments) + 1, per_spp)
             t1 = _time.perf_counter()
-            segments.append(self.auto_segment(make(best.settings), best, scene, sensor, seed, len(segments),
+            segments.append(self.auto_segment(make(best.settings, best.pixel_counts), best, scene, sensor, seed, len(segments),
                                               n, done, spp, n_pixels, evaluate))
             segments[-1]['seconds'] = _time.perf_counter() - t1
             render_s += segments[-1]['seconds']
@@ -253,7 +271,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                     dr.schedule(ps.store.count)
                 dr.eval()
             if ctx.light_cache is not None and ctx.strategies.trace_connect and ps.store is not None:
-                ps.cache = LightCache(ps.store, self.cache_run[1])
+                c = self.cache_run[1] if ctx.pixel_counts is None else max(ctx.pixel_counts.c_max, 1)
+                ps.cache = LightCache(ps.store, c)
         if ctx.strategies.trace_merge:
             ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             if ctx.beams:
@@ -334,6 +353,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps.splat_scale = ctx.splat_scale * dr.opaque(mi.Float, ps.n / n_light)
         vpp, c = self.cache_run
         counts = cache_counts(vpp, c, n_light, ps.n, ctx.strategies.trace_connect)
+        if ctx.pixel_counts is not None:    # the counts per lane, at its pixel (CameraTracer, LightTracer)
+            ps.vpp, ps.n_lt, counts = vpp, counts[1], None
         eta, radius = merging
         ps.mis = ctx.mis.for_pass(eta, counts, radius, ctx.beams)
         eta_light, radius_light = merge_terms(ps.schedule, n_light, ctx.media is not None)

@@ -68,6 +68,11 @@ class LightCache:
         self.scale = mi.Float(self.count) / (dr.opaque(mi.Float, float(c)) * mi.Float(store.n_opaque))
         dr.eval(self.slots, self.count, self.scale)
 
+    def scale_for(self, c):
+        """V / (c n_L) for a draw count ``c`` per lane (per-pixel counts, pixel_counts.py; 0 where c = 0)."""
+        cf = mi.Float(c)
+        return dr.select(cf > 0, mi.Float(self.count) / (dr.maximum(cf, 1.0) * mi.Float(self.store.n_opaque)), 0.0)
+
     def draw(self, u, active):
         """A cached vertex drawn by ``u`` (two uniform numbers in [0, 1)): (its slot, its level,
         whether there is one). The rank is the high word of a 32-bit random integer times V (16

@@ -100,12 +100,21 @@ class LightTracer:
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), cos_g, dr.square(ds.dist))  # We |cos| / d^2
         if et is not None:      # media: the camera subpath reaches y0 (a surface) with the edge's T
             pdf_cam_a = pdf_cam_a * et.pdf_l_near
+        self.pixel_counts_at(ds.uv, ok)
         w = self.mis.weight_s1t1(pdf_cam_a, pdf_light_a)
         value = le * tr * dr.abs(cos_g) * (sensor_w * safe_div(1.0, pdf_light_a)) * self.splat_scale
         if not isinstance(self.wl_weight, float):
             value = value * self.wl_weight
         self.ps.film.put_splat(ds.uv, value * w, ok, si_e.wavelengths)
         self.add_layer(1, 1, ds.uv + c.camera.crop_offset, value * w, value, ok)
+
+    def pixel_counts_at(self, uv, active):
+        """Per-pixel counts (pixel_counts.py): the weight formed next is a splat's at film position
+        ``uv``, whose pixel's counts it takes."""
+        pc = self.ctx.pixel_counts
+        if pc is not None:
+            pixel, inside = pc.pixel_at(uv, active)
+            self.mis.eval_counts = pc.counts(pixel, self.ps.vpp, self.ps.n_lt, inside)
 
     def strategy_t1(self, v, sub, active):
         """t=1 (s >= 2): the light vertex ``v`` connected to the camera and splatted to the
@@ -125,6 +134,7 @@ class LightTracer:
         else:       # media: the camera subpath reaches y with the edge's distance density there
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), v.cos(ds.d), dr.square(ds.dist)) * et.pdf_l_near
         merge_y = v.merge_factor(self.mis, c.media.info) if et is not None and self.mis.merge_everywhere else None
+        self.pixel_counts_at(ds.uv, ok)
         w = self.mis.weight_t1(sub.mis.d_vcm, sub.mis.d_vc, pdf_cam_a, pdf_rev_w, merge_y)
         value = sub.beta * f * tr * sensor_w * self.splat_scale
         if not isinstance(self.wl_weight, float):

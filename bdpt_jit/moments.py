@@ -57,12 +57,18 @@ def _unit(k, like):
 
 class FamilyMIS(MIS):
     """The balance heuristic with the families of the counts kept apart (see above). ``counts``:
-    the configuration whose weights it returns, (n_c, n_lt, n_m) (floats or arrays); ``tap``:
-    the MomentFilm that receives each weight's family vector R (or None); ``merge_everywhere``:
-    the merge set of a pilot that merges (it must merge everywhere, see above)."""
+    the configuration whose weights it returns, (n_c, n_lt, n_m) (floats, or arrays of the
+    lanes whose weights are formed next: per-pixel counts, pixel_counts.py); ``tap``: the
+    MomentFilm that receives each weight's family vector R (or None); ``merge_everywhere``: the
+    merge set of a pilot that merges (it must merge everywhere, see above). ``kind``: the
+    heuristic; under the power heuristic h(n p) = h(n) h(p), so each family's terms are h of
+    the densities and the weights dot them with h of the counts (the families' unit vectors
+    are their own h), the same linear recursion; the moment film (tap) needs the balance's."""
 
-    def __init__(self, strategies, counts=(1.0, 1.0, 1.0), tap=None, merge_everywhere=False):
-        super().__init__('balance', strategies, merge_everywhere=merge_everywhere)
+    def __init__(self, strategies, counts=(1.0, 1.0, 1.0), tap=None, merge_everywhere=False, kind='balance'):
+        if tap is not None and kind != 'balance':
+            raise ValueError('moments: the moment film predicts balance-heuristic variances')
+        super().__init__(kind, strategies, merge_everywhere=merge_everywhere)
         if self.mis_merges and not merge_everywhere:
             raise ValueError('moments: a pilot that merges merges everywhere (merge_everywhere): '
                              'merges behind delta vertices only are not a family of counts')
@@ -77,9 +83,9 @@ class FamilyMIS(MIS):
         = 1 / eta (the merges' scale, relative to which the others' terms are taken)."""
         if not self.mis_merges:
             return
-        self.vm_factor = Family(0.0, 0.0, 0.0, eta)                         # [VCM (20)] n_VM = N
+        self.vm_factor = Family(0.0, 0.0, 0.0, self.h(eta))                 # [VCM (20)] n_VM = N
         has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
-        self.vc_factor = 1.0 / eta if has_vc else 0.0                       # [VCM (20)] n_VC = 1
+        self.vc_factor = self.h(1.0 / eta) if has_vc else 0.0               # [VCM (20)] n_VC = 1
 
     def set_counts(self, n_c, n_lt):
         raise ValueError('moments: FamilyMIS carries the counts as families (its eval_counts)')
@@ -89,7 +95,7 @@ class FamilyMIS(MIS):
         to its own are the family vector ``R``: n_s / R_n under the configuration's counts."""
         if self.tap is not None:
             self.tap.offer(R, own)
-        n_c, n_lt, n_m = self.eval_counts
+        n_c, n_lt, n_m = (self.h(n) for n in self.eval_counts)            # h(n_t): [Veach 9.2.2] h(n_t p_t)
         r = R.x + n_c * R.y + n_lt * R.z + n_m * R.w                       # (family sums)
         mine = (1.0, n_c, n_lt, n_m)[own]
         return _finite(mine / r)                                           # [eq. 20], [Veach 9.2.2]

@@ -142,6 +142,8 @@ class PassState:
         self.pilot = False              # light_cache.pilot: a light pass that only counts vertices
         self.mis_light = None           # the light subpaths' mis.MIS where it is not ``mis`` (the cache
         #                                 with merges: each light subpath's own iteration's eta)
+        self.vpp = None                 # per-pixel counts (pixel_counts.py): V / n_L of the cache's pilot
+        self.n_lt = None                # and the pass's n_lt = n_L / n
 
 
 class RenderHooks:

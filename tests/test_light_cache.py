@@ -104,10 +104,12 @@ def test_bad_parameters_name_the_parameter(params, needle):
 CONFIGS = [(0.25, 1), (2.0, 4)]
 
 
-def layer_means(scene, props, spp, batches, seed0=0):
+def layer_means(scene, props, spp, batches, seed0=0, pixel_counts=None):
     """{layer: per-batch image means of its unweighted image}, the batches' images (K, H, W, 3);
-    every batch checked: finite pixels, the weighted layers summing to the image."""
+    every batch checked: finite pixels, the weighted layers summing to the image.
+    ``pixel_counts``: per-pixel counts (pixel_counts.py) for the integrator."""
     integ = mi.load_dict(props)
+    integ.pixel_counts = pixel_counts
     out, imgs = {}, []
     for b in range(batches):
         img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed0 + b), dtype=np.float64)[:, :, :3]
@@ -127,16 +129,19 @@ def strategy_of(name):
     return int(s[1:]), int(t[1:])
 
 
-@pytest.mark.parametrize('light_paths,connections', CONFIGS)
+@pytest.mark.parametrize('light_paths,connections', CONFIGS + [(0.5, 'per pixel')])
 def test_closed_sphere_layers_are_analytic(light_paths, connections):
     """Inside the closed emitting sphere (test_analytic) each (s,t) strategy alone, its unweighted
     layer, estimates Le rho^(s+t-2): connections, splats and the camera-side strategies with the
     cache, and the image Le sum rho^k. The connections' layers pooled are measured to 0.15%, so
-    a count factor 1% off in the connection estimator (V / (c n_L)) is over 6 sigma away."""
+    a count factor 1% off in the connection estimator (V / (c n_L)) is over 6 sigma away.
+    'per pixel': pixel_counts.py's maps (connections 1, 2 or 4 by pixel, pixel_maps; not 0,
+    where the connections' unweighted layers are 0), whose factor is V / (c(p) n_L)."""
     rho, max_depth, K = 0.5, 5, 16
+    per_pixel = connections == 'per pixel'
     means, imgs = layer_means(sphere_scene(rho), {'type': 'bdpt', 'max_depth': max_depth, 'strategy_images': True,
-                                                  'light_paths': light_paths, 'connections': connections},
-                              128, K)
+                                                  'light_paths': light_paths, 'connections': 1 if per_pixel else connections},
+                              128, K, pixel_counts=pixel_maps(8, False, (1, 2, 4)) if per_pixel else None)
     per_batch = imgs.mean(axis=(1, 2, 3))
     expected = LE * sum(rho ** k for k in range(max_depth))
     se = per_batch.std(ddof=1) / np.sqrt(K)
@@ -201,6 +206,50 @@ def test_agrees_with_mitsuba(name, max_depth, light_paths, connections):
                                   'connections': connections}, 64, BATCHES)
     ok, msg = agreement(mine, ref, alpha=0.01)
     assert ok, f'{name} max_depth={max_depth} light_paths={light_paths} connections={connections}: {msg}'
+
+
+def pixel_maps(res, merges, values=(0, 1, 4)):
+    """Per-pixel counts (pixel_counts.py) that differ between neighbours: c(p) in ``values`` by
+    (x + 2 y) mod 3 (0: no connection there), merges on a checkerboard (or none)."""
+    from bdpt_jit.pixel_counts import PixelCounts
+    y, x = np.mgrid[0:res, 0:res]
+    c = np.array(values)[(x + 2 * y) % 3]
+    return PixelCounts(c, ((x + y) % 2 == 0) if merges else None)
+
+
+@pytest.mark.parametrize('name,technique', [('cornell-box.xml', 'bdpt'), ('caustic.xml', 'vcm')])
+def test_per_pixel_counts_agree_with_mitsuba(name, technique):
+    """Per-pixel connections and merging (pixel_counts.py; auto's per-pixel candidate): the
+    counts of a path's MIS are those of its pixel, the camera's or where a splat lands, so with
+    maps that differ between every two neighbours (connections 0, 1 or 4 a camera vertex; vcm
+    merging everywhere on a checkerboard), any splat or connection weighted with another pixel's
+    counts breaks the partition of unity there. Block by block and per pixel against
+    test_agreement.py's references, as the fixed caches."""
+    max_depth = 5
+    scene = load_scene(name, RES, max_depth)
+    ref_pt = file_reference(name, RES, max_depth, 'ptracer', 1024, BATCHES, REF_SEED)
+    ref_path = file_reference(name, RES, max_depth, 'path', 1024, BATCHES, REF_SEED)
+    ref = np.where(no_delta_mask(scene)[None, :, :, None], ref_pt, ref_path)
+    extra = {'technique': 'vcm', 'merge_everywhere': True} if technique == 'vcm' else {}
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'light_paths': 0.5, 'connections': 1, **extra})
+    integ.pixel_counts = pixel_maps(RES, technique == 'vcm')
+    mine = render_batches(scene, integ, 64, BATCHES)
+    ok, msg = agreement(mine, ref, alpha=0.01)
+    assert ok, f'{name} {technique} per-pixel counts: {msg}'
+
+
+def test_uniform_pixel_counts_are_the_cache():
+    """Maps of one value render the fixed cache's image with the same seed (the families' weights
+    dotted with the counts equal mis.MIS's with set_counts, the draws and factors the same)."""
+    from bdpt_jit.pixel_counts import PixelCounts
+    scene = load_scene('caustic.xml', 16, 4)
+    for c, extra in ((1, {}), (4, {'technique': 'vcm', 'merge_everywhere': True})):
+        props = {'type': 'bdpt', 'max_depth': 4, 'light_paths': 0.5, 'connections': c, **extra}
+        mapped = mi.load_dict(props)
+        mapped.pixel_counts = PixelCounts(np.full((16, 16), c), np.ones((16, 16), bool) if extra else None)
+        a = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=16, seed=3))
+        np.testing.assert_allclose(np.array(mi.render(scene, integrator=mapped, spp=16, seed=3)), a,
+                                   rtol=1e-4, atol=1e-6)
 
 
 def test_light_tracing_with_the_cache_is_analytic():
@@ -296,9 +345,17 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
     info = integ.last_render_info['auto']
-    names = [c['name'] for c in info['candidates']]
+    names = [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
     caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
     assert names == ['pt', 'bdpt'] + (['vcm'] + caches + ['vcm ' + c for c in caches] if merging else caches)
+    for c in info['candidates']:        # the per-pixel candidates (auto.per_pixel_trials): maps of those caches
+        if 'per pixel' in c['name']:
+            lp = c['settings']['light_paths']
+            assert c['name'] == f'cache {lp:g}x per pixel' and lp in auto.LIGHT_PATHS
+            conn = np.array(c['pixel_counts']['connections'])
+            assert conn.shape == (16, 16) and set(np.unique(conn)) <= set(auto.CONNECTIONS)
+            m = c['pixel_counts']['merges']
+            assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
     # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt
     t_pt = info['candidates'][0]['seconds_per_spp']
     best = max(info['candidates'], key=lambda c: c['efficiency'] * (auto.PREFER_PT if c['name'] == 'pt' else 1))
@@ -326,11 +383,15 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
         g = max((x1 - x0) / 0.75, 0.0)
         e = max(x1 - g, 0.0)
     for c in info['candidates']:
-        if 'light_paths' in c['settings'] and not c['timed']:
+        if 'light_paths' in c['settings'] and not c['timed'] and 'per pixel' not in c['name']:
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
             want_t = t['cache 1x1'] + b * (n_l - 1) + d * (conn - 1) + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
             np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-6)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
+    if 'pixel_counts' in best:
+        from bdpt_jit.pixel_counts import PixelCounts
+        m = best['pixel_counts']['merges']
+        alone.pixel_counts = PixelCounts(np.array(best['pixel_counts']['connections']), None if m is None else np.array(m))
     # (up to the order of the light image's atomic additions, which varies from run to run)
     np.testing.assert_allclose(img, np.array(mi.render(scene, integrator=alone, spp=4, seed=5)),
                                rtol=1e-4, atol=1e-6)
@@ -342,24 +403,28 @@ def test_auto_decides_again_as_the_render_goes(monkeypatch):
     trial's v the mean of the pilots'), segment k with seed + k SEGMENT_SEED, and the image is
     the segments' images weighted by n_k / v_k normalised (auto.segment_weights: independent of
     the images, so the combination is unbiased where each candidate is). REDECIDE made tiny, and
-    the later choices forced to other candidates, so that four segments of three
-    configurations combine: the image equals the weighted sum of those configurations rendered
-    alone with those seeds and spp, and the weighted strategy layers still sum to it."""
+    the later choices forced to other candidates (the last a per-pixel candidate of a fixed map,
+    pixel_maps), so that four segments of four configurations combine: the image equals the
+    weighted sum of those configurations rendered alone with those seeds and spp, and the
+    weighted strategy layers still sum to it."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'REDECIDE', 1e-6)
-    forced, rechoose = iter(['pt', 'bdpt', 'cache 1x1']), auto.rechoose
+    mapped = auto.Trial('cache 1x per pixel', {'light_paths': 1.0, 'connections': 1}, (1.0, 1.0, 0.0))
+    mapped.pixel_counts, mapped.parts, mapped.rel_var, mapped.seconds = pixel_maps(16, False, (1, 2, 4)), [], 0.07, 1e-3
+    forced, rechoose = iter(['pt', 'bdpt', mapped]), auto.rechoose
 
     def forced_rechoose(make, trials, *args):
         rechoose(make, trials, *args)
         name = next(forced)
-        return next(tr for tr in trials if tr.name == name)
+        return name if isinstance(name, auto.Trial) else next(tr for tr in trials if tr.name == name)
     monkeypatch.setattr(auto, 'rechoose', forced_rechoose)
     scene = load_scene('cornell-box.xml', 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'strategy_images': True})
     img = np.array(mi.render(scene, integrator=integ, spp=64, seed=5))
     info = integ.last_render_info
-    decisions, cands = info['auto']['decisions'], {c['name']: c for c in info['auto']['candidates']}
-    assert [d['chosen'] for d in decisions[1:]] == ['pt', 'bdpt', 'cache 1x1']
+    decisions = info['auto']['decisions']
+    cands = {**{c['name']: c for c in info['auto']['candidates']}, mapped.name: mapped.report()}
+    assert [d['chosen'] for d in decisions[1:]] == ['pt', 'bdpt', mapped.name]
     assert [d['spp'] for d in decisions] == [1, 1, 1, 61] and info['samples'] == 64 * 16 * 16
     v = [cands[d['chosen']]['relmse_1spp'] for d in decisions]
     w = np.array([d['spp'] for d in decisions]) / np.array(v)
@@ -367,11 +432,46 @@ def test_auto_decides_again_as_the_render_goes(monkeypatch):
     expect = 0.0
     for k, d in enumerate(decisions):
         alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **cands[d['chosen']]['settings']})
+        if d['chosen'] == mapped.name:
+            alone.pixel_counts = mapped.pixel_counts
         seed = 5 + k * auto.SEGMENT_SEED if k else 5
         expect = expect + d['weight'] * np.array(mi.render(scene, integrator=alone, spp=int(d['spp']), seed=seed))
     np.testing.assert_allclose(img, expect, rtol=1e-4, atol=1e-6)
     layers = sum(layer['weighted'] for layer in integ.strategy_images.values())
     np.testing.assert_allclose(layers, img[:, :, :3], rtol=1e-4, atol=1e-6)
+
+
+def test_per_pixel_assignment_minimises_the_image_product():
+    """auto.assign: per pixel the cache of least v(p) + lambda t, lambda = mean v / mean t, which
+    minimises (mean v)(mean t) over the image, not each pixel's own v t. Two caches, A (t = 1)
+    and B (t = 2, lower v everywhere: 0.4 of A's, and 0.1 in a hot 4 x 4 block whose variance is
+    most of the image's): a pixel's own v t takes B everywhere (0.8 < 1), which pays B's time for
+    small gains where the image's variance is not; the product is least with B in the block only
+    (in the filtered v that the choice sees: the block and its filtered edge), and on the true v
+    the assignment beats A or B everywhere and each pixel's own choice."""
+    from bdpt_jit import auto
+
+    def trial(v, t):
+        tr = auto.Trial('x', {}, (1.0, 1.0, 0.0), (1.0, 1))
+        tr.pixel_var, tr.seconds = v, t
+        return tr
+    hot = np.zeros((12, 12), bool)
+    hot[4:8, 4:8] = True
+    a = trial(np.where(hot, 100.0, 1.0), 1.0)
+    b = trial(np.where(hot, 10.0, 0.4), 2.0)
+    pick = auto.assign([a, b])
+
+    def product(p, f=lambda v: v):
+        v = np.where(p == 0, f(a.pixel_var), f(b.pixel_var)).mean()
+        return v * np.where(p == 0, a.seconds, b.seconds).mean()
+    assert pick[5:7, 5:7].min() == 1 and pick[0, 0] == 0 and pick[11, 11] == 0
+    naive = np.argmin(np.stack([auto.box3(a.pixel_var) * 1.0, auto.box3(b.pixel_var) * 2.0]), axis=0)
+    assert naive.min() == 1                 # (each pixel's own v t: B everywhere)
+    for other in (np.zeros_like(pick), np.ones_like(pick), naive):
+        assert product(pick) < product(other)
+    ring = (auto.box3(hot.astype(float)) > 0).astype(int)
+    for other in (np.zeros_like(pick), np.ones_like(pick), naive, hot.astype(int), ring):
+        assert product(pick, auto.box3) <= product(other, auto.box3) + 1e-12
 
 
 def test_auto_segment_plan():

@@ -21,7 +21,9 @@ from bdpt_jit.moments import FamilyMIS
 @pytest.mark.parametrize('emitter', tmp.KINDS)
 @pytest.mark.parametrize('k', [1, 2, 3, 5])
 @pytest.mark.parametrize('which', ['random', 'pt'])
-def test_family_weights_equal_the_brute_force_with_counts(which, k, emitter, camera):
+@pytest.mark.parametrize('kind', ['balance', 'power'])
+def test_family_weights_equal_the_brute_force_with_counts(kind, which, k, emitter, camera):
+    """(Under the power heuristic too: the per-pixel counts' renders, pixel_counts.py.)"""
     rng = np.random.default_rng(70_000 + 100 * k + 7 * tmp.KINDS.index(emitter))
     P = tmp.random_paths(rng, k, delta_prob=0.3, emitter=emitter)
     P['camera'] = camera
@@ -30,20 +32,21 @@ def test_family_weights_equal_the_brute_force_with_counts(which, k, emitter, cam
     else:
         counts = tlc.random_counts(rng)
     F = lambda a: tmp.aligned(tmp.mi.Float, a, np.float64)         # noqa: E731
-    w_fam = tmp.recursive('balance', 'bdpt', P,
-                          make_mis=lambda s: FamilyMIS(s, counts=(F(counts[0]), F(counts[1]), F(0.0 * counts[0]))))
-    w_ref = tmp.brute_force('balance', 'bdpt', P, counts=counts)
+    w_fam = tmp.recursive(kind, 'bdpt', P, make_mis=lambda s: FamilyMIS(
+        s, counts=(F(counts[0]), F(counts[1]), F(0.0 * counts[0])), kind=kind))
+    w_ref = tmp.brute_force(kind, 'bdpt', P, counts=counts)
     assert np.all(np.isfinite(w_fam))
     np.testing.assert_allclose(w_fam, w_ref, rtol=1e-5, atol=1e-7)
     if which == 'pt':   # path tracing's weights: the classic pt technique's
-        np.testing.assert_allclose(w_fam, tmp.brute_force('balance', 'pt', P), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(w_fam, tmp.brute_force(kind, 'pt', P), rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize('camera', ['pinhole', 'delta'])
 @pytest.mark.parametrize('emitter', tmp.KINDS)
 @pytest.mark.parametrize('k', [2, 3, 5])
 @pytest.mark.parametrize('which', ['random', 'no merges', 'media'])
-def test_family_weights_with_merges_equal_the_brute_force(which, k, emitter, camera):
+@pytest.mark.parametrize('kind', ['balance', 'power'])
+def test_family_weights_with_merges_equal_the_brute_force(kind, which, k, emitter, camera):
     """The merge family: vcm merging everywhere with random counts (n_c, n_lt, n_m), n_m 0
     on half the paths (a candidate that does not merge), in scenes with media too (merges
     at medium vertices, 4/3 pi r^3 N): FamilyMIS's weights equal the brute force's (1e-5), whose
@@ -54,9 +57,9 @@ def test_family_weights_with_merges_equal_the_brute_force(which, k, emitter, cam
     n_c, n_lt = tlc.random_counts(rng)
     n_m = np.zeros(tmp.M) if which == 'no merges' else rng.uniform(0.0, 4.0, size=tmp.M) * rng.integers(0, 2, tmp.M)
     F = lambda a: tmp.aligned(tmp.mi.Float, a, np.float64)         # noqa: E731
-    w_fam = tmp.recursive('balance', 'vcm_all', P,
-                          make_mis=lambda s: FamilyMIS(s, counts=(F(n_c), F(n_lt), F(n_m)), merge_everywhere=True))
-    w_ref = tmp.brute_force('balance', 'vcm_all', P, counts=(n_c, n_lt, n_m))
+    w_fam = tmp.recursive(kind, 'vcm_all', P, make_mis=lambda s: FamilyMIS(
+        s, counts=(F(n_c), F(n_lt), F(n_m)), merge_everywhere=True, kind=kind))
+    w_ref = tmp.brute_force(kind, 'vcm_all', P, counts=(n_c, n_lt, n_m))
     assert np.all(np.isfinite(w_fam))
     np.testing.assert_allclose(w_fam, w_ref, rtol=1e-5, atol=1e-7)
     if which == 'no merges':    # the merges' weights 0: the connections' and splats' are bdpt's with these counts
