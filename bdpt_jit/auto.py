@@ -262,17 +262,23 @@ def assign(parts, rounds=8):
     (mean v) (mean t) over the image is where each pixel takes the least v(p) + lambda t with
     lambda = mean v / mean t of the assignment (the Lagrangian of the product; a pixel's own
     v(p) t would let the few pixels that hold most of the variance decide nothing and the many
-    others buy small gains at full cost); lambda from the best cache's, then refined. v
-    filtered over each pixel's 3 x 3 neighbourhood."""
+    others buy small gains at full cost); lambda from the best cache's, then refined, keeping
+    the best assignment met (the fixed point is a necessary condition only). v filtered over
+    each pixel's 3 x 3 neighbourhood."""
     fv = np.stack([box3(tr.pixel_var) for tr in parts])
     t = np.array([max(tr.seconds, 1e-12) for tr in parts])
-    v = np.stack([tr.pixel_var for tr in parts])
+
+    def product(pick):
+        return np.mean(np.take_along_axis(fv, pick[None], 0)) * np.mean(t[pick])
     k = int(np.argmin(fv.mean(axis=(1, 2)) * t))
-    lam = fv[k].mean() / t[k]
+    best = np.full(fv.shape[1:], k)             # the best cache everywhere, then refined
+    pick = best
     for _ in range(rounds):
+        lam = np.mean(np.take_along_axis(fv, pick[None], 0)) / np.mean(t[pick])
         pick = np.argmin(fv + lam * t[:, None, None], axis=0)
-        lam = np.mean(np.take_along_axis(v, pick[None], 0)) / np.mean(t[pick])
-    return pick
+        if product(pick) < product(best):
+            best = pick
+    return best
 
 
 def per_pixel_trials(trials):

@@ -358,7 +358,8 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
             assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
     # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt
     t_pt = info['candidates'][0]['seconds_per_spp']
-    best = max(info['candidates'], key=lambda c: c['efficiency'] * (auto.PREFER_PT if c['name'] == 'pt' else 1))
+    best = max(info['candidates'], key=lambda c: c['efficiency'] * (auto.PREFER_PT if c['name'] == 'pt' else 1)
+               / (auto.PER_PIXEL if 'per pixel' in c['name'] else 1))
     assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
     for c in info['candidates']:
         assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0
