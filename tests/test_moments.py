@@ -163,10 +163,15 @@ def relmse(var, image):
     return float(np.mean(var / (image ** 2 + 1e-2)))
 
 
-def measured_variance(scene, props, renders, seed0):
+def measured_variance(scene, props, renders, seed0, pixel_counts=None):
     """(per-pixel variance of one sample per pixel of the channel mean in 8 batches of the
-    ``renders`` renders of 1 spp, the mean image)."""
-    imgs = np.array([np.array(mi.render(scene, integrator=mi.load_dict(props), spp=1, seed=seed0 + i))[..., :3]
+    ``renders`` renders of 1 spp, the mean image); ``pixel_counts``: the integrator's
+    per-pixel counts (pixel_counts.py)."""
+    def integrator():
+        integ = mi.load_dict(props)
+        integ.pixel_counts = pixel_counts
+        return integ
+    imgs = np.array([np.array(mi.render(scene, integrator=integrator(), spp=1, seed=seed0 + i))[..., :3]
                      .mean(axis=2).ravel() for i in range(renders)])
     return [b.var(axis=0, ddof=1) for b in np.array_split(imgs, 8)], imgs.mean(axis=0)
 
@@ -180,6 +185,7 @@ def mean_and_error(values):
     ('bdpt', {}),
     ('cache 1x4', {'light_paths': 1.0, 'connections': 4}),
     ('vcm', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0}),
+    ('cache 1x per pixel', {'light_paths': 1.0, 'connections': 1}),
 ])
 def test_predicted_variance_agrees_with_the_rendered(name, props):
     """Issue 22's test 3: each candidate's variance predicted from the pilots' samples agrees
@@ -192,10 +198,14 @@ def test_predicted_variance_agrees_with_the_rendered(name, props):
     vertices, fixed over iterations: the pilot's 4 iterations and the renders' first then merge
     alike) from a pilot that merges, as auto's does where it offers merging: there the products
     of one camera vertex's merges with each other (MomentFilm.add_cross) are half the second
-    moment."""
+    moment. The per-pixel candidate (pixel_counts.py; a fixed map of 1, 2 or 4 connections by
+    pixel, test_light_cache.pixel_maps): its prediction per pixel that of its pixel's cache, as
+    auto.per_pixel_trials composes it."""
     D = 4
     scene = load_scene('cornell-box.xml', 16, D)
     base = {'type': 'bdpt', 'max_depth': D, 'mis': 'balance', **props}
+    if 'per pixel' in name:
+        return _per_pixel_prediction(scene, D, base)
     pilot_props = props if name == 'vcm' else {}
     counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0), 'vcm': (1.0, 1.0, 1.0)}.get(name)
     if counts is None:          # the cache's n_c = c / (V / n_L) of its own pilot light pass
@@ -208,6 +218,25 @@ def test_predicted_variance_agrees_with_the_rendered(name, props):
                                     for k in range(12)])
     bound = 0.15 * meas + 4 * np.hypot(pred_se, meas_se)
     assert abs(pred - meas) <= bound, f'{name}: predicted {pred:.4g} +- {pred_se:.2g}, rendered {meas:.4g} +- {meas_se:.2g}'
+
+
+def _per_pixel_prediction(scene, D, base):
+    values = (1, 2, 4)
+    counts = tlc.pixel_maps(16, False, values)
+    integ = mi.load_dict(base)
+    integ.pixel_counts = counts
+    mi.render(scene, integrator=integ, spp=1, seed=0)
+    vpp = integ.cache_run[0]
+    pick = np.searchsorted(values, counts.connections.ravel())
+    rendered, image = measured_variance(scene, base, 256, 5000, counts)
+    meas, meas_se = mean_and_error([relmse(v, image) for v in rendered])
+    preds = []
+    for k in range(12):
+        V = pilot(scene, D, [(c / vpp, 1.0) for c in values], seed=100 + k)[1][1]
+        preds.append(relmse(V[pick, np.arange(pick.size)], image))
+    pred, pred_se = mean_and_error(preds)
+    bound = 0.15 * meas + 4 * np.hypot(pred_se, meas_se)
+    assert abs(pred - meas) <= bound, f'per pixel: predicted {pred:.4g} +- {pred_se:.2g}, rendered {meas:.4g} +- {meas_se:.2g}'
 
 
 # ---------------------------------------------------------------------------- technique auto
