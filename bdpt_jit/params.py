@@ -56,8 +56,10 @@ PARAMS = (
           'efficient of path tracing and bdpt\'s configurations (the classic estimator and light vertex '
           'caches, with and without merging everywhere where the scene has a glossy or delta BSDF), by '
           'the second moments a pilot render estimates for each and their timed trials (Grittmann et '
-          'al. 2022; docs/light-cache.md); the choice in `last_render_info[\'auto\']`; consistent, '
-          'as `vcm`, where it chose to merge.',
+          'al. 2022; docs/light-cache.md), among the caches of one light_paths also with connections '
+          'and merging chosen per pixel; a long render decides again as it goes and combines its '
+          'segments with inverse-variance weights; the choices in `last_render_info[\'auto\']`; '
+          'consistent, as `vcm`, where it chose to merge.',
           choices=('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto')),
     Param('radius', float, 0.005,
           'Initial merging radius of `vcm` and `vm`, relative to the radius of the scene\'s bounding '
