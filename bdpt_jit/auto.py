@@ -66,6 +66,7 @@ MAX_DECISIONS = 4               # decisions in one render at most, the first inc
 SEGMENT_SEED = 1 << 29          # segment k of a render renders with the caller's seed plus k times this
 PER_PIXEL = 1.1                 # a per-pixel candidate is chosen only if this many times as efficient
                                 # as the best of the others (its v is the least of noisy estimates per pixel)
+MERGE_KEEP = 0.02               # a pixel whose pilot image is this share merges or more keeps merging
 
 
 class Trial:
@@ -89,6 +90,7 @@ class Trial:
         self.parts = None               # a per-pixel candidate's caches (per_pixel_trials), else None
         self.pixel_counts = None        # and its pixel_counts.PixelCounts
         self.pick = None                # and per pixel the index of its cache in parts
+        self.merge_share = None         # per crop pixel, the share of the pilots' image that merges carried
 
     def report(self):
         out = {'name': self.name, 'settings': self.settings, 'counts': self.counts,
@@ -206,6 +208,7 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     their own): each trial's predicted relative MSE at one sample per pixel and the share it
     misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
     estimates the same quantities from independent samples)."""
+    from .moments import merge_image
     trials = [tr for tr in trials if tr.parts is None]          # (per-pixel candidates: from these)
     merging = any(tr.merges for tr in trials)
     integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
@@ -224,6 +227,8 @@ def pilot(make, trials, scene, sensor, seed, index=0):
             rel = rel.reshape(film.pixels.h, film.pixels.w)
             n = len(tr.pilot_vars)
             tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
+            share = (merge_image(film) / np.maximum(np.abs(image), 1e-30)).reshape(rel.shape)
+            tr.merge_share = share if tr.merge_share is None else tr.merge_share + (share - tr.merge_share) / n
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
@@ -264,9 +269,17 @@ def assign(parts, rounds=8):
     v(p) t would let the few pixels that hold most of the variance decide nothing and the many
     others buy small gains at full cost); lambda from the best cache's, then refined, keeping
     the best assignment met (the fixed point is a necessary condition only). v filtered over
-    each pixel's 3 x 3 neighbourhood."""
+    each pixel's 3 x 3 neighbourhood. Where merges carried MERGE_KEEP of the pilots' image or
+    more (filtered alike), only merging caches: there the other strategies sample those paths
+    poorly, and a pixel's few pilot samples may show none of the rare paths that only merges
+    render well (on the volumetric caustic, without this rule, the per-pixel candidate left
+    merges out behind the glass and rendered twice vcm's error at vcm's speed)."""
     fv = np.stack([box3(tr.pixel_var) for tr in parts])
     t = np.array([max(tr.seconds, 1e-12) for tr in parts])
+    share = parts[0].merge_share
+    if share is not None and any(tr.merges for tr in parts):     # merges kept where they carry the image
+        keep = box3(np.clip(share, 0.0, 1.0)) > MERGE_KEEP
+        fv = np.where(np.array([not tr.merges for tr in parts])[:, None, None] & keep[None], np.inf, fv)
 
     def product(pick):
         return np.mean(np.take_along_axis(fv, pick[None], 0)) * np.mean(t[pick])

@@ -58,6 +58,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.moment_counts = None       # technique auto's pilot: the candidates' (n_c, n_lt) (moments.py)
         self.moment_film = None         # its moments.MomentFilm after a render
         self.pixel_counts = None        # technique auto's per-pixel candidate: pixel_counts.PixelCounts
+        self.last_chosen = None         # technique auto: the integrator of its last decision (renders on without choosing)
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -195,6 +196,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         chosen.merge_iteration = self.merge_iteration
         image = chosen.render(scene, sensor, seed + k * SEGMENT_SEED if k else seed, spp, True, evaluate)
         self.merge_iteration = chosen.merge_iteration
+        self.last_chosen = chosen
         info = dict(chosen.last_render_info)
         return {'trial': trial, 'image': image, 'layers': chosen.strategy_images, 'info': info,
                 'spp': info['samples'] / n_pixels}

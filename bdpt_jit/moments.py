@@ -230,7 +230,7 @@ class MomentFilm:
         self.max_length = max(int(max_length), 1)
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
-        self.stride = 1 + 2 * K + 2 * K * L
+        self.stride = 1 + 2 * K + 2 * K * L + 1     # (the last: the merges' share of the image, merge_image)
         self.groups = {}                        # each lane's half, 0 or 1, by the lanes' number (begin_pass)
         self.buf = dr.zeros(mi.Float, self.count * self.stride)
         self.pending = None                     # the (family vector, own family) of the weight just formed
@@ -272,6 +272,8 @@ class MomentFilm:
         add = lambda value, at, mask: dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value, at, mask,  # noqa: E731
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
+        if s is None:               # a merge: its weighted contribution, the merges' image (merge_image)
+            add(c_mean, base + self.stride - 1, ok)
         lay = None if s is None else layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
         group = None if lay is None else self.groups[dr.width(pixel)]     # the lanes' halves (begin_pass)
         terms = []
@@ -320,7 +322,7 @@ class MomentFilm:
         image = a[:, 0]
         M = spp * a[:, 1:1 + K].T
         missed = a[:, 1 + K:1 + 2 * K].sum(axis=0) / max(float(np.sum(np.abs(image))), 1e-30)
-        halves = a[:, 1 + 2 * K:].reshape(-1, K, 2, L)
+        halves = a[:, 1 + 2 * K:-1].reshape(-1, K, 2, L)
         V = np.empty_like(M)
         P = self.pixels.count           # the crop's pixels: light subpaths a one-sample image traces
         for k, (n_c, n_lt, _) in enumerate(self.counts):
@@ -331,6 +333,15 @@ class MomentFilm:
             sq = np.where(n > 0, sq / np.where(n > 0, n, 1.0), 0.0)
             V[k] = M[k] - sq.sum(axis=1)
         return image, V, missed
+
+
+def merge_image(film):
+    """The merges' part of the pilot's image per kept pixel (its weighted merge contributions;
+    zeros where the pilot did not merge): where it is a large share, the other strategies sample
+    those paths poorly, and a candidate without merges there risks what a few pilot samples do
+    not show (auto.per_pixel_trials)."""
+    import numpy as np
+    return np.array(film.buf, np.float64).reshape(film.count, film.stride)[:, -1]
 
 
 def family_record(record):

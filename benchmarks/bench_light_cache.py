@@ -114,8 +114,7 @@ def equal_time_auto(scene, integ, budget, batch_spp, seed0=0):
     t0 = time.perf_counter()
     img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0)
     choice = integ.last_render_info['auto']
-    chosen = mi.load_dict({'type': 'bdpt', 'max_depth': integ.max_depth,
-                           **next(c['settings'] for c in choice['candidates'] if c['name'] == choice['chosen'])})
+    chosen = integ.last_chosen          # the chosen configuration (a per-pixel one with its maps)
     acc, spp, b = np.array(img, np.float64)[:, :, :3] * batch_spp, batch_spp, 1
     while time.perf_counter() - t0 < budget:
         img = mi.render(scene, integrator=chosen, spp=batch_spp, seed=seed0 + b)

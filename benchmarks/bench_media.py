@@ -53,9 +53,9 @@ def integrator(name, max_depth):
             params[key] = {'true': True, 'false': False}.get(value, value)
     if name in ('volpath', 'volpathmis') and not params:
         return {'type': name, 'max_depth': max_depth}
-    if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm'):
+    if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto'):
         return {'type': 'bdpt', 'max_depth': max_depth, 'technique': name, **params}
-    raise ValueError(f'unknown integrator {name!r} (volpath, volpathmis, bdpt, pt, lt, vcm, vm; '
+    raise ValueError(f'unknown integrator {name!r} (volpath, volpathmis, bdpt, pt, lt, vcm, vm, auto; '
                      'bdpt parameters after a colon)')
 
 
@@ -98,12 +98,16 @@ def own_error(halves, mask=None):
 
 
 def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
-    """[(seconds, spp, relMSE)] of the running mean of batches at each checkpoint of ``budget``."""
+    """[(seconds, spp, relMSE)] of the running mean of batches at each checkpoint of ``budget``
+    (technique auto: its first batch chooses, with the choice's time in the budget, the others
+    render the chosen configuration, ``last_chosen``)."""
     acc, spp, b, out = 0.0, 0, 0, []
     t0 = time.perf_counter()
     for frac in CHECKPOINTS:
         while time.perf_counter() - t0 < frac * budget:
             img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0 + b)
+            if getattr(integ, 'technique', None) == 'auto':     # its first batch chose (in the budget):
+                integ = integ.last_chosen                       # the others render the choice
             acc = acc + np.array(img, np.float64)[:, :, :3] * batch_spp
             spp += batch_spp
             b += 1

@@ -396,6 +396,11 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     # (up to the order of the light image's atomic additions, which varies from run to run)
     np.testing.assert_allclose(img, np.array(mi.render(scene, integrator=alone, spp=4, seed=5)),
                                rtol=1e-4, atol=1e-6)
+    # the chosen configuration renders on without choosing again (last_chosen)
+    assert integ.last_chosen.technique != 'auto'
+    assert (integ.last_chosen.pixel_counts is None) == ('pixel_counts' not in best)
+    np.testing.assert_allclose(np.array(mi.render(scene, integrator=integ.last_chosen, spp=4, seed=5)), img,
+                               rtol=1e-4, atol=1e-6)
 
 
 def test_auto_decides_again_as_the_render_goes(monkeypatch):
@@ -473,6 +478,14 @@ def test_per_pixel_assignment_minimises_the_image_product():
     ring = (auto.box3(hot.astype(float)) > 0).astype(int)
     for other in (np.zeros_like(pick), np.ones_like(pick), naive, hot.astype(int), ring):
         assert product(pick, auto.box3) <= product(other, auto.box3) + 1e-12
+    # where the pilots' merges carried MERGE_KEEP of the image or more, only merging caches,
+    # whatever v says (a non-merging A of lower v and time everywhere; merges carry the block)
+    a = trial(np.full((12, 12), 1.0), 1.0)
+    b = trial(np.full((12, 12), 2.0), 2.0)
+    b.merges = True
+    a.merge_share = b.merge_share = np.where(hot, 0.5, 0.0)
+    pick = auto.assign([a, b])
+    assert np.all(pick[auto.box3(hot * 0.5) > auto.MERGE_KEEP] == 1) and pick[0, 0] == 0
 
 
 def test_auto_segment_plan():
