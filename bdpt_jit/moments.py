@@ -234,6 +234,7 @@ class MomentFilm:
         self.groups = {}                        # each lane's half, 0 or 1, by the lanes' number (begin_pass)
         self.buf = dr.zeros(mi.Float, self.count * self.stride)
         self.pending = None                     # the (family vector, own family) of the weight just formed
+        self.merged = None                      # the merges' image per kept pixel (estimates; merge_image)
 
     def begin_pass(self, n, spp_pass, spp_before, n_camera=None):
         """The halves of a pass of ``n`` light subpaths and ``n_camera`` camera samples (default
@@ -318,6 +319,7 @@ class MomentFilm:
         candidate cannot sample (candidates)."""
         import numpy as np
         a = np.array(self.buf, np.float64).reshape(self.count, self.stride)
+        self.merged = a[:, -1].copy()           # (merge_image)
         K, L = len(self.counts), len(self.families)
         image = a[:, 0]
         M = spp * a[:, 1:1 + K].T
@@ -340,8 +342,7 @@ def merge_image(film):
     zeros where the pilot did not merge): where it is a large share, the other strategies sample
     those paths poorly, and a candidate without merges there risks what a few pilot samples do
     not show (auto.per_pixel_trials)."""
-    import numpy as np
-    return np.array(film.buf, np.float64).reshape(film.count, film.stride)[:, -1]
+    return film.merged          # (read by estimates, which the pilot calls first)
 
 
 def family_record(record):
