@@ -315,7 +315,7 @@ def per_pixel_trials(trials):
         counts = PixelCounts(np.array([tr.cache[1] for tr in parts])[pick], merges if merges.any() else None)
         vcm = {'technique': 'vcm', 'merge_everywhere': True} if merges.any() else {}
         per_c = parts[0].counts[0] / parts[0].cache[1]         # n_c per connection: 1 / (V / n_L)
-        tr = Trial(f"cache {lp:g}x per pixel", {**vcm, 'light_paths': lp, 'connections': 1},
+        tr = Trial(f"{'vcm ' if vcm else ''}cache {lp:g}x per pixel", {**vcm, 'light_paths': lp, 'connections': 1},
                    (counts.mean_connections() * per_c, lp, lp * counts.merge_share()))
         tr.parts, tr.pixel_counts, tr.pick = parts, counts, pick
         tr.rel_var = float(np.mean(np.choose(pick, [p.pixel_var for p in parts])))

@@ -351,10 +351,10 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     for c in info['candidates']:        # the per-pixel candidates (auto.per_pixel_trials): maps of those caches
         if 'per pixel' in c['name']:
             lp = c['settings']['light_paths']
-            assert c['name'] == f'cache {lp:g}x per pixel' and lp in auto.LIGHT_PATHS
+            m = c['pixel_counts']['merges']
+            assert c['name'] == f"{'vcm ' if m is not None else ''}cache {lp:g}x per pixel" and lp in auto.LIGHT_PATHS
             conn = np.array(c['pixel_counts']['connections'])
             assert conn.shape == (16, 16) and set(np.unique(conn)) <= set(auto.CONNECTIONS)
-            m = c['pixel_counts']['merges']
             assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
     # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt
     t_pt = info['candidates'][0]['seconds_per_spp']
