@@ -32,6 +32,19 @@ LATTICE_PASS = 1 << 25          # pass_seed index of a lattice pilot's camera sa
 AD_BYTES_FACTOR = 8             # a differentiable pass holds its AD graph: passes this much smaller
 
 
+class AutoRender:
+    """What the segments of a technique-auto render share (BDPTIntegrator.render_auto), one
+    field a line."""
+
+    def __init__(self, scene, sensor, seed, spp, n_pixels, evaluate):
+        self.scene = scene              # the scene rendered
+        self.sensor = sensor            # its sensor
+        self.seed = seed                # the caller's seed (segment k: plus k auto.SEGMENT_SEED)
+        self.spp = spp                  # the caller's samples per pixel, all segments together
+        self.n_pixels = n_pixels        # the crop's pixels
+        self.evaluate = evaluate        # mi.render's evaluate
+
+
 class BDPTIntegrator(mi.SamplingIntegrator):
     __doc__ = None  # set below from the parameter table
 
@@ -157,6 +170,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         vpp = pilot(self, ctx, seed, max(256, n_pixels)) if ctx.strategies.trace_connect else 0.0
         best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp)
         decided_s, render_s, segments = _time.perf_counter() - t0, 0.0, []
+        job = AutoRender(scene, sensor, seed, spp, n_pixels, evaluate)
         took = [decided_s]                      # each decision's seconds
         while True:
             done = sum(seg['spp'] for seg in segments)
@@ -164,8 +178,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             per_spp = sum(seg['seconds'] for seg in own) / sum(seg['spp'] for seg in own) if own else None
             n = auto.segment_spp(best, render_s, decided_s, spp - int(round(done)), len(segments) + 1, per_spp)
             t1 = _time.perf_counter()
-            segments.append(self.auto_segment(make(best.settings, best.pixel_counts), best, scene, sensor, seed, len(segments),
-                                              n, done, spp, n_pixels, evaluate))
+            segments.append(self.auto_segment(make(best.settings, best.pixel_counts), best, job, len(segments), n, done))
             segments[-1]['seconds'] = _time.perf_counter() - t1
             render_s += segments[-1]['seconds']
             if done + n >= spp or segments[-1]['info']['interrupted']:     # all rendered, or stopped
@@ -185,21 +198,23 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                                          'candidates': [tr.report() for tr in trials]}
         return image
 
-    def auto_segment(self, chosen, trial, scene, sensor, seed, k, spp, spp_before, spp_total, n_pixels, evaluate):
-        """Segment ``k`` of an auto render: ``spp`` samples per pixel of the ``chosen`` integrator
-        (``trial``'s configuration), seeded with seed + k auto.SEGMENT_SEED (segment 0: the
-        caller's seed), its progress reported after the ``spp_before`` of earlier segments."""
+    def auto_segment(self, chosen, trial, job, k, spp, spp_before):
+        """Segment ``k`` of the auto render ``job`` (an AutoRender): ``spp`` samples per pixel of
+        the ``chosen`` integrator (``trial``'s configuration), seeded with seed + k
+        auto.SEGMENT_SEED (segment 0: the caller's seed), its progress reported after the
+        ``spp_before`` of earlier segments."""
         from .auto import SEGMENT_SEED
-        offset = int(round(spp_before * n_pixels))
-        chosen.hooks = RenderHooks(on_pass=lambda done, _: self.hooks.passed(offset + done, spp_total * n_pixels),
+        offset, total = int(round(spp_before * job.n_pixels)), job.spp * job.n_pixels
+        chosen.hooks = RenderHooks(on_pass=lambda done, _: self.hooks.passed(offset + done, total),
                                    should_stop=self.hooks.stop)
         chosen.merge_iteration = self.merge_iteration
-        image = chosen.render(scene, sensor, seed + k * SEGMENT_SEED if k else seed, spp, True, evaluate)
+        seed = job.seed + k * SEGMENT_SEED if k else job.seed
+        image = chosen.render(job.scene, job.sensor, seed, spp, True, job.evaluate)
         self.merge_iteration = chosen.merge_iteration
         self.last_chosen = chosen
         info = dict(chosen.last_render_info)
         return {'trial': trial, 'image': image, 'layers': chosen.strategy_images, 'info': info,
-                'spp': info['samples'] / n_pixels}
+                'spp': info['samples'] / job.n_pixels}
 
     def combine_segments(self, segments, spp, n_pixels):
         """The image of an auto render's segments (auto.segment_weights), its strategy layers
