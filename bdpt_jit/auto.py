@@ -41,8 +41,6 @@ decide from earlier, independent samples). The candidates use the render's own h
 (power by default); their variances are predicted under the balance heuristic, which the power
 heuristic's differs from by little (Veach's thesis, section 9.2.4)."""
 
-import time
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -208,7 +206,6 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     their own): each trial's predicted relative MSE at one sample per pixel and the share it
     misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
     estimates the same quantities from independent samples)."""
-    from .moments import merge_image
     trials = [tr for tr in trials if tr.parts is None]          # (per-pixel candidates: from these)
     merging = any(tr.merges for tr in trials)
     integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
@@ -217,6 +214,7 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     film = integ.moment_film
     image, V, missed = film.estimates(PILOT_SPP)
     denom = image ** 2 + DENOM
+    share = film.merged / np.maximum(np.abs(image), 1e-30)      # the merges' part of each pixel
     for k, tr in enumerate(trials):
         rel = np.maximum(V[k], 0.0) / denom
         tr.pilot_vars.append(float(np.mean(rel)))
@@ -227,8 +225,8 @@ def pilot(make, trials, scene, sensor, seed, index=0):
             rel = rel.reshape(film.pixels.h, film.pixels.w)
             n = len(tr.pilot_vars)
             tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
-            share = (merge_image(film) / np.maximum(np.abs(image), 1e-30)).reshape(rel.shape)
-            tr.merge_share = share if tr.merge_share is None else tr.merge_share + (share - tr.merge_share) / n
+            s = share.reshape(rel.shape)
+            tr.merge_share = s if tr.merge_share is None else tr.merge_share + (s - tr.merge_share) / n
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
@@ -331,7 +329,7 @@ def decide(make, trials, scene, sensor, seed, spp):
         cost_model(trials)              # again after each timing: its points' times may have fallen
         for tr in trials:               # a per-pixel candidate's t: the mean of its pixels' caches'
             if tr.parts is not None and not tr.timed:
-                tr.seconds = float(np.mean(np.choose(tr.pick, [p.seconds for p in tr.parts])))
+                tr.seconds = float(np.mean(np.array([p.seconds for p in tr.parts])[tr.pick]))
         best, runner = ranked(trials)
         if not best.timed:          # the best by the model is timed before it is chosen
             time_trial(make, best, scene, sensor, seed, spp)

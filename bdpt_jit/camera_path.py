@@ -48,10 +48,7 @@ class CameraTracer:
         the light subpaths were given the wavelengths it chooses (spectral variants)."""
         c, ps = self.ctx, self.ps
         sampler = ps.sampler
-        idx = dr.arange(mi.UInt32, ps.n)
-        pixel = idx // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
-        if ps.pixel_stride != 1:        # technique auto's pilot of a large crop (integrator.lattice_step)
-            pixel = pixel * ps.pixel_stride
+        pixel = camera_pixels(ps)
         crop_w = int(c.camera.crop_size.x)
         pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
         adjusted = pos / c.camera.crop_size
@@ -372,11 +369,19 @@ class CameraTracer:
         return L, prev, was_delta
 
 
+def camera_pixels(ps):
+    """The crop pixel of each camera sample of pass ``ps``: spp_pass consecutive samples a pixel
+    from pixel_start (every pixel_stride-th pixel in technique auto's pilot of a large crop:
+    integrator.lattice_step)."""
+    pixel = dr.arange(mi.UInt32, ps.n) // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
+    return pixel * ps.pixel_stride if ps.pixel_stride != 1 else pixel
+
+
 class PixelLanes:
     """The camera lanes' per-pixel counts (pixel_counts.py), one field a line."""
 
     def __init__(self, pixel_counts, ps):
-        pixel = dr.arange(mi.UInt32, ps.n) // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
+        pixel = camera_pixels(ps)
         self.c = pixel_counts.c_at(pixel)                       # cached vertices each camera vertex draws
         self.merge = pixel_counts.merge_at(pixel)               # whether it merges
         self.counts = pixel_counts.counts(pixel, ps.vpp, ps.n_lt)   # (n_c, n_lt, n_m) of its MIS

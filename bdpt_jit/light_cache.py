@@ -65,7 +65,7 @@ class LightCache:
         dr.scatter(self.slots, slot, rank, valid)
         self.count = dr.sum(store.count)
         self.c = dr.opaque(mi.UInt32, c)
-        self.scale = mi.Float(self.count) / (dr.opaque(mi.Float, float(c)) * mi.Float(store.n_opaque))
+        self.scale = self.scale_for(self.c)
         dr.eval(self.slots, self.count, self.scale)
 
     def scale_for(self, c):

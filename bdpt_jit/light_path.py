@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import media_path, transport
+from .film import NearestPixel
 from .jitmath import pdf_w_to_a, safe_div
 from .media import medium_at_sensor
 from .rays import spawn_to
@@ -28,6 +29,8 @@ class LightTracer:
         self.n = ps.n_light                 # light subpaths: one per camera sample, or n_L (cache)
         self.splat_scale = ps.splat_scale if ps.splat_scale is not None else ctx.splat_scale
         self.splats = not ps.pilot          # a pilot pass (light_cache.pilot) only stores vertices
+        # per-pixel counts (pixel_counts.py): the crop pixel a splat lands in
+        self.pixels = NearestPixel(ctx.sensor.film()) if ctx.pixel_counts is not None else None
 
     # ------------------------------------------------------------------ emission
     def start(self):
@@ -111,10 +114,10 @@ class LightTracer:
     def pixel_counts_at(self, uv, active):
         """Per-pixel counts (pixel_counts.py): the weight formed next is a splat's at film position
         ``uv``, whose pixel's counts it takes."""
-        pc = self.ctx.pixel_counts
-        if pc is not None:
-            pixel, inside = pc.pixel_at(uv, active)
-            self.mis.eval_counts = pc.counts(pixel, self.ps.vpp, self.ps.n_lt, inside)
+        c = self.ctx
+        if self.pixels is not None:         # (the pixel add_layer's position lands in)
+            pixel, inside = self.pixels.index(uv + c.camera.crop_offset, active)
+            self.mis.eval_counts = c.pixel_counts.counts(pixel, self.ps.vpp, self.ps.n_lt, inside)
 
     def strategy_t1(self, v, sub, active):
         """t=1 (s >= 2): the light vertex ``v`` connected to the camera and splatted to the

@@ -230,11 +230,12 @@ class MomentFilm:
         self.max_length = max(int(max_length), 1)
         self.families = layer_families(self.max_length)
         K, L = len(self.counts), len(self.families)
-        self.stride = 1 + 2 * K + 2 * K * L + 1     # (the last: the merges' share of the image, merge_image)
+        self.stride = 1 + 2 * K + 2 * K * L + 1     # (the last: the merges' part of the image, ``merged``)
         self.groups = {}                        # each lane's half, 0 or 1, by the lanes' number (begin_pass)
         self.buf = dr.zeros(mi.Float, self.count * self.stride)
         self.pending = None                     # the (family vector, own family) of the weight just formed
-        self.merged = None                      # the merges' image per kept pixel (estimates; merge_image)
+        self.merged = None                      # after estimates: the merges' part of the image per kept pixel
+        #                                         (their weighted contributions; auto keeps merges where it is large)
 
     def begin_pass(self, n, spp_pass, spp_before, n_camera=None):
         """The halves of a pass of ``n`` light subpaths and ``n_camera`` camera samples (default
@@ -273,7 +274,7 @@ class MomentFilm:
         add = lambda value, at, mask: dr.scatter_reduce(dr.ReduceOp.Add, self.buf, value, at, mask,  # noqa: E731
                                                         mode=dr.ReduceMode.Local)
         add(c_mean, base, ok)
-        if s is None:               # a merge: its weighted contribution, the merges' image (merge_image)
+        if s is None:               # a merge: its weighted contribution, the merges' image (``merged``)
             add(c_mean, base + self.stride - 1, ok)
         lay = None if s is None else layer_index(mi.UInt32(s), mi.UInt32(t), self.max_length)
         group = None if lay is None else self.groups[dr.width(pixel)]     # the lanes' halves (begin_pass)
@@ -319,7 +320,7 @@ class MomentFilm:
         candidate cannot sample (candidates)."""
         import numpy as np
         a = np.array(self.buf, np.float64).reshape(self.count, self.stride)
-        self.merged = a[:, -1].copy()           # (merge_image)
+        self.merged = a[:, -1].copy()
         K, L = len(self.counts), len(self.families)
         image = a[:, 0]
         M = spp * a[:, 1:1 + K].T
@@ -335,14 +336,6 @@ class MomentFilm:
             sq = np.where(n > 0, sq / np.where(n > 0, n, 1.0), 0.0)
             V[k] = M[k] - sq.sum(axis=1)
         return image, V, missed
-
-
-def merge_image(film):
-    """The merges' part of the pilot's image per kept pixel (its weighted merge contributions;
-    zeros where the pilot did not merge): where it is a large share, the other strategies sample
-    those paths poorly, and a candidate without merges there risks what a few pilot samples do
-    not show (auto.per_pixel_trials)."""
-    return film.merged          # (read by estimates, which the pilot calls first)
 
 
 def family_record(record):

@@ -15,9 +15,9 @@ h(n p) = h(n) h(p), each family's terms times h of its count at the weight), and
 them with the pixel's counts: ``counts`` gives them for the lanes of the camera pass (at their
 pixel) and of a splat (at the pixel it lands in).
 
-The maps come from technique auto's pilot (auto.per_pixel_candidates): per kept pixel the
-candidate of least V t among the caches of one n_L, V filtered over the pixel's 3 x 3
-neighbourhood (the pilot's 4 samples a pixel alone are too noisy to decide on)."""
+The maps come from technique auto's pilots (auto.per_pixel_trials, auto.assign): among the
+caches of one n_L, per pixel the one that keeps the image's (mean v)(mean t) least, v filtered
+over the pixel's 3 x 3 neighbourhood, merges kept where they carried the pilots' image."""
 
 import drjit as dr
 import mitsuba as mi
@@ -46,23 +46,19 @@ class PixelCounts:
         return dr.gather(mi.UInt32, self._c, pixel, active)
 
     def merge_at(self, pixel, active=True):
-        """merge(p) of the lanes (True where the map has no merges: the merge set decides)."""
+        """merge(p) of the lanes (True without a merge map: the technique's merge set decides)."""
         if self._m is None:
             return mi.Bool(True)
         return dr.gather(mi.Bool, self._m, pixel, active)
 
     def counts(self, pixel, vpp, n_lt, active=True):
         """(n_c, n_lt, n_m) of the lanes in ``pixel`` [Veach 9.2.2]: c(p) / vpp (vpp = V / n_L of
-        the render's cache pilot), the pass's n_lt, 1 or 0 for the merges (eta holds N)."""
+        the render's cache pilot), the pass's n_lt, 1 or 0 for the merges as merge_at says (eta
+        holds N; without a merge map 1: the technique merges wherever its merge set does, and a
+        technique that does not merge has no merge terms for it to scale)."""
         n_c = mi.Float(self.c_at(pixel, active)) / dr.opaque(mi.Float, max(float(vpp), 1e-3))
-        n_m = mi.Float(0.0) if self._m is None else dr.select(self.merge_at(pixel, active), 1.0, 0.0)
+        n_m = mi.Float(1.0) if self._m is None else dr.select(self.merge_at(pixel, active), 1.0, 0.0)
         return n_c, n_lt, n_m
-
-    def pixel_at(self, uv, active):
-        """(the crop pixel of film position ``uv`` (a splat's, crop-relative), whether it is inside)."""
-        p = mi.Point2i(dr.floor(uv))
-        inside = active & (p.x >= 0) & (p.y >= 0) & (p.x < self.width) & (p.y < self.height)
-        return mi.UInt32(dr.clip(p.y, 0, self.height - 1) * self.width + dr.clip(p.x, 0, self.width - 1)), inside
 
     def mean_connections(self):
         return float(np.mean(self.connections)) if self.connections.size else 0.0

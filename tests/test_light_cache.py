@@ -240,13 +240,16 @@ def test_per_pixel_counts_agree_with_mitsuba(name, technique):
 
 def test_uniform_pixel_counts_are_the_cache():
     """Maps of one value render the fixed cache's image with the same seed (the families' weights
-    dotted with the counts equal mis.MIS's with set_counts, the draws and factors the same)."""
+    dotted with the counts equal mis.MIS's with set_counts, the draws and factors the same); vcm
+    with a merge map of ones and with none (its merge set decides where it merges: the merges'
+    count is 1 there, as the gathers')."""
     from bdpt_jit.pixel_counts import PixelCounts
     scene = load_scene('caustic.xml', 16, 4)
-    for c, extra in ((1, {}), (4, {'technique': 'vcm', 'merge_everywhere': True})):
+    vcm = {'technique': 'vcm', 'merge_everywhere': True, 'radius': 0.1}     # (gathers that find vertices)
+    for c, extra, merges in ((1, {}, None), (4, vcm, np.ones((16, 16), bool)), (2, vcm, None)):
         props = {'type': 'bdpt', 'max_depth': 4, 'light_paths': 0.5, 'connections': c, **extra}
         mapped = mi.load_dict(props)
-        mapped.pixel_counts = PixelCounts(np.full((16, 16), c), np.ones((16, 16), bool) if extra else None)
+        mapped.pixel_counts = PixelCounts(np.full((16, 16), c), merges)
         a = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=16, seed=3))
         np.testing.assert_allclose(np.array(mi.render(scene, integrator=mapped, spp=16, seed=3)), a,
                                    rtol=1e-4, atol=1e-6)
@@ -604,7 +607,6 @@ def test_auto_times_close_calls_again(monkeypatch):
 def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     """Where the best leads by more than auto.CLOSE, each cost-model point is timed once (and
     the best, if it is modelled, once more before it is chosen): no re-timing."""
-    from bdpt_jit import auto
     rel = {'pt': 0.01}
     times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)

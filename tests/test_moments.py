@@ -73,6 +73,7 @@ def pilot(scene, max_depth, counts, seed, spp=4, **props):
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': max_depth, 'mis': 'balance', **props})
     integ.moment_counts = counts
     img = np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed))
+    pilot.last_film = integ.moment_film
     return img, integ.moment_film.estimates(spp)
 
 
@@ -97,6 +98,11 @@ def test_the_pilot_renders_the_classic_balance_image(name):
     np.testing.assert_allclose(img, ref, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(I, img[..., :3].mean(axis=2).ravel(), rtol=1e-4, atol=1e-6)
     assert np.all(np.isfinite(V)) and np.all(missed == 0.0)     # pt samples every path of these scenes
+    # the merges' part of the image (auto keeps merges where it is large): a part of each pixel's
+    # weighted image (contributions are positive), none without merges, some behind the glass
+    film = pilot.last_film
+    assert np.all(film.merged >= 0) and np.all(film.merged <= I * (1 + 1e-4) + 1e-7)
+    assert (film.merged.max() > 0) == ('merging' in name)
 
 
 @pytest.mark.parametrize('name', ['cornell', 'caustic, merging', pytest.param('fog room, merging', marks=pytest.mark.slow)])
