@@ -18,7 +18,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    the light subpaths per camera sample and in the connections per camera vertex; the best
    candidate by the model is timed too before it is chosen (until the best is a timed one), and
    while the runner-up's efficiency is within CLOSE of the best's, both are timed again, up to
-   TIMINGS times; a candidate's time is the least of its timings. Another job's load on the cores
+   TIMINGS times, until a candidate's two least timings agree within SETTLED (``settled``); a
+   candidate's time is the least of its timings. Another job's load on the cores
    only adds time, and comes in bursts: under a second test worker, single timings of pt's on a
    96 x 96 image ranged over 0.6-2.3 ms a sample per pixel, and a cache was chosen over it.
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
@@ -47,7 +48,7 @@ import numpy as np
 
 TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
-TRIAL_SAMPLES = 1 << 16         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
+TRIAL_SAMPLES = 1 << 15         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
@@ -58,6 +59,7 @@ TIMED_MERGING = (0.25, 1)       # the merging cache whose time is measured (with
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
 PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
+SETTLED = 1.1                   # a candidate whose two least timings are within this factor is not timed again
 REDECIDE = 16.0                 # the render decides again once it has run this many times as long as
                                 # its decisions so far took, then 16 times as long, ... (segments)
 MAX_DECISIONS = 4               # decisions in one render at most, the first included
@@ -79,6 +81,7 @@ class Trial:
         self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.timings = 0                # how many: its seconds are their minimum (a second job's load only adds)
+        self.second = None              # the second least of its timings (``settled``)
         self.rel_var = None             # v: predicted relative MSE at one sample per pixel (the pilots' mean)
         self.missed = None              # the share of the image none of its strategies samples (likewise)
         self.pilot_vars = []            # v from each pilot of the render (pilot)
@@ -170,6 +173,8 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))
     t = max(t, 1e-9) / spp
+    if trial.timed:
+        trial.second = min(max(trial.seconds, t), trial.second or np.inf)
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
     trial.timed = True
     trial.timings += 1
@@ -334,12 +339,19 @@ def decide(make, trials, scene, sensor, seed, spp):
         if not best.timed:          # the best by the model is timed before it is chosen
             time_trial(make, best, scene, sensor, seed, spp)
         elif runner is not None and runner.efficiency * CLOSE > best.efficiency \
-                and min(best.timings, runner.timings) < TIMINGS:
+                and not (settled(best) and settled(runner)):
             for tr in (best, runner):       # a close call: both timed again (the least of their times)
-                if tr.timings < TIMINGS:
+                if not settled(tr):
                     time_trial(make, tr, scene, sensor, seed, spp)
         else:
             return best
+
+
+def settled(trial):
+    """Whether a close call times ``trial`` no more: TIMINGS timings, or two that agree within
+    SETTLED (another job's load comes in bursts, which seldom lengthen two timings alike; on the
+    Cornell box pt's agree within 3%, and a third cost a choice ~5% of its time)."""
+    return trial.timings >= TIMINGS or (trial.second is not None and trial.second <= SETTLED * trial.seconds)
 
 
 def segment_spp(best, render_s, decided_s, spp_left, index, seconds=None):

@@ -577,7 +577,8 @@ def test_auto_times_close_calls_again(monkeypatch):
     and decided by the least of each one's times: pt's first timing met another job's load (4x
     its time), so the cache 1/4 x 1 led by 1.6x; pt's second timing, unloaded, wins. The cost
     model is refitted from the times that fell (a stale model keeps the modelled caches' first
-    values), and no candidate is timed more than auto.TIMINGS times."""
+    values), and no candidate is timed more than auto.TIMINGS times, nor again once two of its
+    timings agree within auto.SETTLED."""
     from bdpt_jit import auto
     # a later timing under load (5.0) does not undo an earlier one (1.0): the least counts
     rel = {'pt': 0.11, 'cache 0.25x1': 0.11}
@@ -589,13 +590,22 @@ def test_auto_times_close_calls_again(monkeypatch):
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt' and by['pt'].seconds == 1.0 and by['pt'].timings == 2
     assert max(tr.timings for tr in by.values()) <= auto.TIMINGS
+    # a close call whose timings settle: pt's 1.0, 1.05 and the cache's 1.5, 1.5 agree within
+    # SETTLED (the cache still leads by 1.36 < CLOSE): each timed twice, not TIMINGS times
+    rel = {'pt': 0.11, 'cache 0.25x1': 0.05}
+    times = {'pt': [1.0, 1.05, 0.5], 'bdpt': [3.0], 'cache 0.25x1': [1.5, 1.5, 0.1], 'cache 1x1': [3.0],
+             'cache 1x4': [4.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'cache 0.25x1' and by['cache 0.25x1'].seconds == 1.5 and by['pt'].seconds == 1.0
+    assert by['pt'].timings == by['cache 0.25x1'].timings == 2
     # a cost-model point in the close call: the cache 1 x 1's time falls 3.0 -> 1.5, so the model
     # is b = max((1.5 - 2.5) / 0.75, 0) = 0, d = (4.0 - 1.5) / 3, a = 1.5 - d (stale: 2, 2/3, 1/3)
     rel = {'bdpt': 0.12, 'cache 1x1': 0.11}
     times = {'pt': [1.0], 'bdpt': [2.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0, 1.5], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'cache 1x1' and by['cache 1x1'].seconds == 1.5
-    assert by['cache 1x1'].timings == by['bdpt'].timings == auto.TIMINGS
+    # cache 1 x 1's two timings disagree (3.0, 1.5): a third; bdpt's agree (2.0, 2.0): settled at two
+    assert by['cache 1x1'].timings == auto.TIMINGS and by['bdpt'].timings == 2
     d = 2.5 / 3.0
     for lp in auto.LIGHT_PATHS:
         for c in auto.CONNECTIONS:
@@ -627,10 +637,10 @@ def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
     (a merge's cost depends on its iteration's light vertices: one light subpath per pixel), and
     its seconds per sample per pixel are its kernels' time over those samples per pixel."""
     from bdpt_jit import auto
-    spp_of = {(128, 128): 4, (100, 100): 4, (181, 181): 2, (200, 180): 1, (1280, 720): 1}
+    spp_of = {(64, 64): 4, (90, 90): 4, (128, 128): 2, (200, 180): 1, (1280, 720): 1}
     for (w, h), want in spp_of.items():
         assert auto.trial_spp(mi.load_dict(_sky_only(w, h)).sensors()[0]) == want, (w, h)
-    scene = mi.load_dict(_sky_only(181, 181))
+    scene = mi.load_dict(_sky_only(128, 128))
     made, seen = [], {}
 
     def kernel_seconds(render):
@@ -644,5 +654,5 @@ def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
         return made[-1]
     trial = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
     auto.time_trial(make, trial, scene, scene.sensors()[0], 0, auto.trial_spp(scene.sensors()[0]))
-    assert seen['samples'] == 2 * 181 * 181
+    assert seen['samples'] == 2 * 128 * 128
     assert trial.seconds == pytest.approx(0.012 / 2, rel=1e-12) and trial.timed and trial.timings == 1
