@@ -167,6 +167,8 @@ CONTESTANTS = [
     Contestant('vcm-all', 'bdpt vcm everywhere', {'type': 'bdpt', 'technique': 'vcm', 'merge_everywhere': True},
                progressive=True),
     Contestant('vm', 'bdpt vm', {'type': 'bdpt', 'technique': 'vm'}, progressive=True),
+    # issue 22's efficiency-aware choice: each render chooses again (its pilot and trials in its time)
+    Contestant('auto', 'bdpt auto', {'type': 'bdpt', 'technique': 'auto'}, progressive=True),
     Contestant('path', 'Mitsuba path', {'type': 'path'}, replica=True),
     Contestant('ptracer', 'Mitsuba ptracer', {'type': 'ptracer'}, replica=True),
 ]
@@ -193,7 +195,9 @@ class Settings:
     pilot_spp: int          # pilot batches: they choose the per-pixel weights of the combined reference
     pilot_batches: int
     count_spp: int          # spp of the ray-count renders (rays per sample, scaled to each table's spp)
-    contestants: tuple = tuple(c.key for c in ALL_CONTESTANTS)  # Mitsuba 0.6's only where it is found
+    # Mitsuba 0.6's only where it is found; auto only where asked for (--contestants: each of its renders
+    # compiles its candidates' kernels, a minute or more with a cold kernel cache)
+    contestants: tuple = tuple(c.key for c in ALL_CONTESTANTS if c.key != 'auto')
     ref06_spp: int = 256    # Mitsuba 0.6's reference: ref06_batches renders of its bdpt at this spp
     ref06_batches: int = 8
     denoise: bool = False   # also denoise each contestant's equal-time image (--denoise)
@@ -553,6 +557,7 @@ class Runner:
         self.compile = {c.key: [] for c in contestants}     # one record per warm-up render
         self.images = {}                                      # (key, spp) -> last image
         self.overhead06 = []                                  # 0.6: process start + scene loading (s), not timed
+        self.choices = {}                                     # (key, spp) -> technique auto's decisions, each render
 
     def _render(self, key, spp):
         self.seed += 1
@@ -570,7 +575,12 @@ class Runner:
         img = mi.render(self.scene, integrator=integ, spp=spp, seed=self.seed)
         dr.eval(img)
         dr.sync_thread()
-        return time.perf_counter() - t0, to_np(img)
+        t = time.perf_counter() - t0
+        auto = (getattr(integ, 'last_render_info', None) or {}).get('auto')
+        if auto:
+            self.choices.setdefault((key, spp), []).append(
+                ' + '.join(d['chosen'] for d in auto['decisions']) or auto['chosen'])
+        return t, to_np(img)
 
     def stage(self, spp_of):
         """One point per contestant: a warm-up render (its compile recorded from Dr.Jit's kernel
@@ -757,6 +767,8 @@ def run_scene(spec, s, contestants, cache_dir, m06=None):
         'equal_samples': {'spp': es_spp, 'points': es},
         'rays': rays,
         'compile': runner.compile,
+        # technique auto: per equal-time and sweep point, what each render chose (segments joined by ' + ')
+        'auto_choices': [{'key': k, 'spp': spp, 'chose': v} for (k, spp), v in runner.choices.items()],
         'denoised': denoised_errors(scene, runner, et) if s.denoise else None,
         'seconds': time.perf_counter() - t0,
     }

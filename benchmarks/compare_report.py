@@ -25,8 +25,12 @@ STYLE = {
     'bdpt-pt': ('tab:purple', '^', '--'), 'bdpt-lt': ('tab:pink', 'D', '--'),
     'path': ('tab:blue', 'o', '-'), 'ptracer': ('tab:cyan', 's', '-'),
     'mitsuba06-bdpt': ('tab:green', 'P', ':'), 'mitsuba06-path': ('tab:olive', 'X', ':'),
-    'vcm': ('black', '*', '-'), 'vm': ('tab:gray', 'h', '-.'),
+    'vcm': ('black', '*', '-'), 'vm': ('tab:gray', 'h', '-.'), 'auto': ('goldenrod', 'd', '-'),
 }
+# issue 22's equal-time targets for `auto` (relMSE ratios): at most AUTO_BIDIR of path's where a bidirectional
+# contestant beats path, at most AUTO_PT where path is best, and within AUTO_BEST of the best fixed contestant
+AUTO_BIDIR, AUTO_PT, AUTO_BEST = 1.0, 1.1, 1.25
+FIXED = ('bdpt', 'vcm', 'vm', 'bdpt-pt', BASELINE)      # the fixed techniques auto is measured against
 
 
 # ------------------------------------------------------------------------------------------ numbers
@@ -309,6 +313,41 @@ def vcm_rows(results, contestants):
     header = ['scene', 'S-D-S paths', 'vcm / path', 'vm / path', 'bdpt / path', 'vcm / bdpt', 'vm / bdpt', 'target',
               'met']
     return table(header, rows), verdicts
+
+
+def auto_rows(results, contestants):
+    """Issue 22's targets: per scene, auto's relMSE ratio to path and to the best fixed contestant at
+    equal time, which targets apply and whether they are met, and what auto chose at that point."""
+    keys = {c.key for c in contestants}
+    fixed = [k for k in FIXED if k in keys]
+    rows = []
+    for r in results:
+        et = r['equal_time']['points']
+        best = min(fixed, key=lambda k: et[k]['rel'])
+        bidir = best != BASELINE and best != 'bdpt-pt'
+        cell, ratio, ok = pair_ratio(r, 'auto', BASELINE)
+        bcell, bratio, bok = pair_ratio(r, 'auto', best)
+        bound = AUTO_BIDIR if bidir else AUTO_PT
+        met = [('yes' if ratio <= bound else 'no') if ok else 'undecided',
+               ('yes' if bratio <= AUTO_BEST else 'no') if bok else 'undecided']
+        chose = next((c['chose'] for c in r.get('auto_choices', [])
+                      if c['key'] == 'auto' and c['spp'] == et['auto']['spp']), [])
+        rows.append([r['spec']['key'], cell, f"auto / path <= {bound:g}", met[0], f'{best}: {bcell}',
+                     met[1], ', '.join(chose) or '–'])
+    header = ['scene', 'auto / path', 'target', 'met', 'auto / best fixed', f'<= {AUTO_BEST:g}', 'auto chose']
+    return table(header, rows)
+
+
+def auto_lines(results, contestants):
+    """Issue 22's targets for technique `auto`, scene by scene."""
+    return ['### Technique `auto` (issue 22)', '',
+            "`auto` chooses, in every render, the configuration of the estimator (path tracing, the classic "
+            "estimator, light vertex caches, merging or not, per pixel) from a pilot's second-moment estimates and "
+            "timed trials (docs/light-cache.md); its choice is inside its time. Targets at equal time: relMSE at "
+            f"most {AUTO_BIDIR:g}x path's where a bidirectional contestant beats path, {AUTO_PT:g}x where path is "
+            f"best, and within {AUTO_BEST:g}x of the best fixed contestant ({', '.join(FIXED)}, those run). "
+            "'auto chose': each render at the equal-time point (a render that decided again lists its segments' "
+            "choices joined by +).", '', auto_rows(results, contestants), '']
 
 
 def scene_file(spec):
@@ -710,6 +749,8 @@ def write_report(results, images, contestants, settings, info, out_md, fig_dir, 
     L += summary_lines(results, contestants, names, fig_dir, rel)
     if {'vcm', 'vm'} & set(names):
         L += vcm_lines(results, contestants)
+    if 'auto' in names and BASELINE in names:
+        L += auto_lines(results, contestants)
     L += compile_lines(results, jit, used06)
     for r in results:
         L += scene_lines(r, images, contestants, names, jit, fig_dir, rel)

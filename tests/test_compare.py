@@ -475,3 +475,34 @@ def test_mitsuba06_real_build_agrees_with_mitsuba3(tmp_path):
     scene = mi.load_file(os.path.join(SCENES, 'cornell-box.xml'), res=24)
     ref = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'path', 'max_depth': 8}), spp=256))
     assert (a.mean() + c.mean()) / 2 == pytest.approx(ref.mean(), rel=0.03)
+
+
+def test_auto_targets_in_the_report():
+    """Issue 22's targets for technique auto, as the report states them (compare_report.auto_rows): the
+    bound to path is 1.0 where a bidirectional contestant is best and 1.1 where path is; auto is within
+    1.25 of the best fixed contestant or not; a figure the reference cannot tell is undecided; the
+    equal-time point's choices are listed. Made-up figures: no rendering."""
+    import compare_lib as lib
+    import compare_report as rep
+
+    def result(key, rel, chose, ref_error=1e-9):
+        points = {k: {'rel': v, 'mse': v, 'spp': 7 if k == 'auto' else 5} for k, v in rel.items()}
+        return {'spec': {'key': key}, 'equal_time': {'budget_s': 16.0, 'points': points},
+                'reference': {'expected_rel': ref_error, 'expected_mse': ref_error},
+                'auto_choices': [{'key': 'auto', 'spp': 3, 'chose': ['bdpt']},
+                                 {'key': 'auto', 'spp': 7, 'chose': chose}]}
+    results = [result('open', {'bdpt': 2.0, 'path': 1.0, 'auto': 1.08}, ['pt', 'pt + pt']),
+               result('near', {'bdpt': 2.0, 'path': 1.0, 'auto': 1.12}, ['pt']),
+               result('room', {'bdpt': 0.1, 'path': 1.0, 'auto': 0.13}, ['bdpt']),
+               result('door', {'bdpt': 0.5, 'path': 1.0, 'auto': 1.05}, ['cache 0.25x1']),
+               result('noisy', {'bdpt': 0.1, 'path': 1.0, 'auto': 0.12}, ['bdpt'], ref_error=0.05)]
+    header, rows = markdown_tables(rep.auto_rows(results, lib.contestants_of(['bdpt', 'path', 'auto'])))[0]
+    got = {row[0]: dict(zip(header, row)) for row in rows}
+    assert got['open']['target'] == 'auto / path <= 1.1' and got['open']['met'] == 'yes'
+    assert got['open']['auto / best fixed'] == 'path: 1.08' and got['open']['<= 1.25'] == 'yes'
+    assert got['open']['auto chose'] == 'pt, pt + pt'
+    assert got['near']['met'] == 'no' and got['near']['<= 1.25'] == 'yes'
+    assert got['room']['target'] == 'auto / path <= 1' and got['room']['met'] == 'yes'
+    assert got['room']['auto / best fixed'] == 'bdpt: 1.3' and got['room']['<= 1.25'] == 'no'
+    assert got['door']['met'] == 'no' and got['door']['<= 1.25'] == 'no'
+    assert got['noisy']['met'] == 'undecided' and got['noisy']['<= 1.25'] == 'undecided'
