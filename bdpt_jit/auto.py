@@ -87,7 +87,8 @@ class Trial:
         self.pilot_vars = []            # v from each pilot of the render (pilot)
         self.pilot_missed = []          # the missed share from each
         self.efficiency = None          # 1 / (v t); 0 where it misses light
-        self.pixel_var = None           # v per crop pixel (the pilots' mean; None where the film keeps a lattice)
+        self.pixel_var = None           # v per crop pixel, h x w (the pilots' mean), or per kept pixel of a lattice
+        self.lattice = None             # (h, w, step) where the pilots' film keeps every step-th pixel (a large crop)
         self.parts = None               # a per-pixel candidate's caches (per_pixel_trials), else None
         self.pixel_counts = None        # and its pixel_counts.PixelCounts
         self.pick = None                # and per pixel the index of its cache in parts
@@ -226,12 +227,12 @@ def pilot(make, trials, scene, sensor, seed, index=0):
         tr.pilot_missed.append(float(missed[k]))
         tr.rel_var = float(np.mean(tr.pilot_vars))
         tr.missed = float(np.mean(tr.pilot_missed))
-        if film.step == 1:          # per pixel (a crop the film keeps whole): the pilots' mean too
-            rel = rel.reshape(film.pixels.h, film.pixels.w)
-            n = len(tr.pilot_vars)
-            tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
-            s = share.reshape(rel.shape)
-            tr.merge_share = s if tr.merge_share is None else tr.merge_share + (s - tr.merge_share) / n
+        # per pixel, the pilots' mean too: an h x w image, or a large crop's kept pixels (moments.MAX_PIXELS)
+        shape = (film.pixels.h, film.pixels.w) if film.step == 1 else (film.count,)
+        tr.lattice = None if film.step == 1 else (film.pixels.h, film.pixels.w, film.step)
+        rel, s, n = rel.reshape(shape), share.reshape(shape), len(tr.pilot_vars)
+        tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
+        tr.merge_share = s if tr.merge_share is None else tr.merge_share + (s - tr.merge_share) / n
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
@@ -265,6 +266,32 @@ def box3(a):
     return sum(p[i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
 
 
+def box3_lattice(a, h, w, step):
+    """box3 over the kept pixels of a large crop (moments.MomentFilm keeps raster pixel j step,
+    ``a[j]``): the mean over the kept pixels nearest to the rows above, at and below each one
+    (edges repeated), and each of those with its kept neighbours in raster order (step pixels to
+    either side, the row before or after at a row's ends)."""
+    count = len(a)
+    x, y = np.arange(count) * step % w, np.arange(count) * step // w
+    out = np.zeros(count)
+    for dy in (-1, 0, 1):
+        near = np.minimum(np.rint((np.clip(y + dy, 0, h - 1) * w + x) / step).astype(np.int64), count - 1)
+        for dj in (-1, 0, 1):
+            out += a[np.clip(near + dj, 0, count - 1)]
+    return out / 9.0
+
+
+def expand(pick, lattice):
+    """A per-pixel ``pick`` over the crop (h x w): as it is, or from a large crop's kept pixels
+    (``lattice``: (h, w, step)), each pixel taking its nearest kept pixel's in raster order (step / 2
+    pixels away or less, in its row but at a row's ends)."""
+    if lattice is None:
+        return pick
+    h, w, step = lattice
+    near = np.minimum(np.rint(np.arange(h * w) / step).astype(np.int64), len(pick) - 1)
+    return pick[near].reshape(h, w)
+
+
 def assign(parts, rounds=8):
     """Per pixel, the index of the cache in ``parts`` for a per-pixel candidate: the least
     (mean v) (mean t) over the image is where each pixel takes the least v(p) + lambda t with
@@ -276,22 +303,26 @@ def assign(parts, rounds=8):
     more (filtered alike), only merging caches: there the other strategies sample those paths
     poorly, and a pixel's few pilot samples may show none of the rare paths that only merges
     render well (on the volumetric caustic, without this rule, the per-pixel candidate left
-    merges out behind the glass and rendered twice vcm's error at vcm's speed)."""
-    fv = np.stack([box3(tr.pixel_var) for tr in parts])
+    merges out behind the glass and rendered twice vcm's error at vcm's speed). A large crop's
+    per kept pixel (``box3_lattice``; per_pixel_trials expands the result)."""
+    lattice = parts[0].lattice
+    smooth = box3 if lattice is None else (lambda a: box3_lattice(a, *lattice))    # noqa: E731
+    fv = np.stack([smooth(tr.pixel_var) for tr in parts])
     t = np.array([max(tr.seconds, 1e-12) for tr in parts])
     share = parts[0].merge_share
     if share is not None and any(tr.merges for tr in parts):     # merges kept where they carry the image
-        keep = box3(np.clip(share, 0.0, 1.0)) > MERGE_KEEP
-        fv = np.where(np.array([not tr.merges for tr in parts])[:, None, None] & keep[None], np.inf, fv)
+        keep = smooth(np.clip(share, 0.0, 1.0)) > MERGE_KEEP
+        nonmerging = np.array([not tr.merges for tr in parts]).reshape((-1,) + (1,) * keep.ndim)
+        fv = np.where(nonmerging & keep[None], np.inf, fv)
 
     def product(pick):
         return np.mean(np.take_along_axis(fv, pick[None], 0)) * np.mean(t[pick])
-    k = int(np.argmin(fv.mean(axis=(1, 2)) * t))
+    k = int(np.argmin(fv.reshape(len(parts), -1).mean(axis=1) * t))
     best = np.full(fv.shape[1:], k)             # the best cache everywhere, then refined
     pick = best
     for _ in range(rounds):
         lam = np.mean(np.take_along_axis(fv, pick[None], 0)) / np.mean(t[pick])
-        pick = np.argmin(fv + lam * t[:, None, None], axis=0)
+        pick = np.argmin(fv + lam * t.reshape((-1,) + (1,) * (fv.ndim - 1)), axis=0)
         if product(pick) < product(best):
             best = pick
     return best
@@ -303,8 +334,9 @@ def per_pixel_trials(trials):
     pixel's 3 x 3 neighbourhood (the pilots' few samples a pixel alone are too noisy to decide
     on) and the image's time in the balance (``assign``); its v the mean over pixels of the
     chosen caches' (unfiltered), its t the mean of their t (the cost model is linear in c and in
-    the merges). None where the pilot kept a lattice, or
-    where every pixel takes the same cache (the global candidate)."""
+    the merges). In a crop larger than the moment film keeps, chosen per kept pixel and
+    expanded to every pixel (``expand``). None where every pixel takes the same cache (the
+    global candidate)."""
     from .pixel_counts import PixelCounts
     out = []
     for lp in LIGHT_PATHS:
@@ -314,8 +346,9 @@ def per_pixel_trials(trials):
         pick = assign(parts)
         if np.all(pick == pick.flat[0]):
             continue
-        merges = np.array([tr.merges for tr in parts])[pick]
-        counts = PixelCounts(np.array([tr.cache[1] for tr in parts])[pick], merges if merges.any() else None)
+        full = expand(pick, parts[0].lattice)
+        merges = np.array([tr.merges for tr in parts])[full]
+        counts = PixelCounts(np.array([tr.cache[1] for tr in parts])[full], merges if merges.any() else None)
         vcm = {'technique': 'vcm', 'merge_everywhere': True} if merges.any() else {}
         per_c = parts[0].counts[0] / parts[0].cache[1]         # n_c per connection: 1 / (V / n_L)
         tr = Trial(f"{'vcm ' if vcm else ''}cache {lp:g}x per pixel", {**vcm, 'light_paths': lp, 'connections': 1},

@@ -493,6 +493,40 @@ def test_per_pixel_assignment_minimises_the_image_product():
     assert np.all(pick[auto.box3(hot * 0.5) > auto.MERGE_KEEP] == 1) and pick[0, 0] == 0
 
 
+def test_per_pixel_maps_of_a_large_crop():
+    """A crop larger than the moment film keeps (moments.MAX_PIXELS: raster pixel j step for kept
+    pixel j): auto.box3_lattice averages each kept pixel with the kept pixels nearest to it in the
+    rows above and below and their neighbours step pixels to either side (the 3 x 3 mean of the
+    kept pixels' grid where the width is a multiple of step), and auto.per_pixel_trials chooses per
+    kept pixel and expands the maps to every pixel, each taking its nearest kept pixel's cache in
+    raster order: a hot block gets the cache of lower v, the rest the cheaper one (as in
+    test_per_pixel_assignment_minimises_the_image_product, on a 24 x 32 crop kept every 4th pixel)."""
+    from bdpt_jit import auto
+    h, w, step = 24, 32, 4
+    rng = np.random.default_rng(3)
+    a = rng.random(h * w // step)
+    grid = a.reshape(h, w // step)
+    got = auto.box3_lattice(a, h, w, step).reshape(grid.shape)
+    for y in range(1, h - 1):
+        for x in range(1, w // step - 1):
+            assert got[y, x] == pytest.approx(grid[y - 1:y + 2, x - 1:x + 2].mean(), rel=1e-12)
+    assert np.allclose(auto.box3_lattice(np.full(a.shape, 0.7), h, w, step), 0.7)
+
+    ys, xs = np.divmod(np.arange(h * w // step) * step, w)
+    hot = (ys >= 8) & (ys < 16) & (xs >= 12) & (xs < 24)          # at the kept pixels
+
+    def trial(c, v, t):
+        tr = auto.Trial(f'cache 1x{c}', {}, (float(c), 1.0, 0.0), (1.0, c))
+        tr.pixel_var, tr.seconds, tr.missed, tr.lattice = v, t, 0.0, (h, w, step)
+        return tr
+    out = auto.per_pixel_trials([trial(1, np.where(hot, 100.0, 1.0), 1.0), trial(4, np.where(hot, 10.0, 0.4), 2.0)])
+    assert len(out) == 1 and out[0].name == 'cache 1x per pixel'
+    conn = out[0].pixel_counts.connections
+    assert conn.shape == (h, w) and conn[10:14, 14:22].min() == 4 and conn[0, 0] == conn[-1, -1] == 1
+    near = np.minimum(np.rint(np.arange(h * w) / step).astype(int), len(a) - 1)
+    np.testing.assert_array_equal(conn.ravel(), np.array([1, 4])[out[0].pick][near])
+
+
 def test_auto_segment_plan():
     """When a render decides again: once it has run REDECIDE ** k times as long as its k
     decisions took (by the chosen candidate's seconds per spp), not where what is left to render
