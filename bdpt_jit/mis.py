@@ -43,7 +43,7 @@ Conventions for the strategies (s light vertices, t camera vertices, endpoints c
 - camera paths are sampled one per light path, so the light-tracing strategies (t=1) are
   weighted with the camera's solid-angle density We(omega) normalised over the crop window;
 - s=1 with t>=2 is emitter sampling from the camera vertex (endpoints.EmitterTable.sample_direct:
-  Mitsuba's ``sample_emitter_direction``, or the visible cap of a small-looking sphere); its
+  Mitsuba's ``sample_emitter_direction``, or the visible cone of a small-looking sphere); its
   density ``pdf_direct_a`` may depend on that vertex (the cone or cap a sphere shows it), which
   is why the light subpath evaluates it at its first hit;
 - s=1, t=1 splats the light subpath's first vertex y0 (its density: emission position).
