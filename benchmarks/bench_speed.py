@@ -3,13 +3,17 @@
 ``--stages`` adds the time of each stage (light pass: emission, walk, splats, stored vertices;
 camera pass: walk, hits, emitter sampling, connections) for techniques bdpt, pt and lt, timed
 by evaluating the kernels after each stage: the connections' share is the bdpt camera pass
-less the pt camera pass. ``--variant`` picks the backend (e.g. cuda_ad_rgb where a GPU is).
+less the pt camera pass. ``--light-paths R [--connections C]`` renders bdpt with the light vertex
+cache (R light subpaths a camera sample, C cached vertices a camera vertex: docs/light-cache.md)
+and adds it to the stages (the classic estimator's row stays: before and after the cache).
+``--variant`` picks the backend (e.g. cuda_ad_rgb where a GPU is).
 
 For each integrator: one warm-up render (timed on its own: tracing + kernel compilation + render), then
 ``--repeats`` timed renders whose median gives samples/s. Dr.Jit keeps compiled kernels in a cache on
 disk, so if this was run before, the warm-up may come out cheaper than a true first compilation.
 
-    python benchmarks/bench_speed.py [--spp 16] [--repeats 3] [--res 256] [--max-depth 10]
+    python benchmarks/bench_speed.py [--spp 16] [--repeats 3] [--res 256] [--max-depth 10] \
+        [--stages] [--light-paths 0.25 --connections 1]
 """
 
 import argparse
@@ -82,8 +86,11 @@ def stages(args):
     """Per-stage medians for each technique."""
     scene = mi.load_file(str(args.scene), res=args.res, max_depth=args.max_depth, spp=args.spp)
     out = {}
-    for technique in ('bdpt', 'pt', 'lt'):
-        integ = mi.load_dict({'type': 'bdpt', 'max_depth': args.max_depth, 'technique': technique, 'mis': args.mis})
+    rows = {t: {'technique': t} for t in ('bdpt', 'pt', 'lt')}
+    if args.light_paths is not None:
+        rows[f'cache {args.light_paths:g}x{args.connections}'] = cache_settings(args)
+    for technique, settings in rows.items():
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': args.max_depth, 'mis': args.mis, **settings})
         clock = StageClock()
         clock.install()
         try:
@@ -99,11 +106,16 @@ def stages(args):
     return out
 
 
+def cache_settings(args):
+    """bdpt's parameters for the light vertex cache of --light-paths and --connections."""
+    return {'technique': args.technique, 'light_paths': args.light_paths, 'connections': args.connections}
+
+
 def bench(name, args):
     scene = mi.load_file(str(args.scene), res=args.res, max_depth=args.max_depth, spp=args.spp, integrator=name)
     if name == 'bdpt':
-        integrator = mi.load_dict({'type': 'bdpt', 'max_depth': args.max_depth,
-                                   'technique': args.technique, 'mis': args.mis})
+        extra = cache_settings(args) if args.light_paths is not None else {'technique': args.technique}
+        integrator = mi.load_dict({'type': 'bdpt', 'max_depth': args.max_depth, 'mis': args.mis, **extra})
     else:
         integrator = scene.integrator()
     first = timed_render(scene, integrator, args.spp)
@@ -124,6 +136,9 @@ def main():
     ap.add_argument('--mis', default='power', choices=['power', 'balance', 'uniform'])
     ap.add_argument('--variant', default='llvm_ad_rgb')
     ap.add_argument('--stages', action='store_true', help='also time each stage of bdpt, pt and lt')
+    ap.add_argument('--light-paths', type=float, default=None,
+                    help="bdpt with the light vertex cache: light subpaths a camera sample (bdpt's light_paths)")
+    ap.add_argument('--connections', type=int, default=1, help="with --light-paths: bdpt's connections")
     args = ap.parse_args()
     mi.set_variant(args.variant)
     import bdpt_jit  # noqa: F401  (registers the 'bdpt' integrator)
@@ -135,7 +150,8 @@ def main():
     print(f"versions: Mitsuba {mi.__version__}, Dr.Jit {dr.__version__}, variant {mi.variant()}")
     print(f"scene:    {args.scene}")
     print(f"settings: {args.res}x{args.res}, {args.spp} spp, max_depth {args.max_depth}, {args.repeats} timed "
-          f"repeats; bdpt technique={args.technique} mis={args.mis}")
+          f"repeats; bdpt technique={args.technique} mis={args.mis}"
+          + (f" light_paths={args.light_paths:g} connections={args.connections}" if args.light_paths is not None else ''))
     print()
 
     results = {name: bench(name, args) for name in ('bdpt', 'path')}
@@ -150,9 +166,9 @@ def main():
     if args.stages:
         st = stages(args)
         print()
-        print(f"{'technique':<10} {'light pass':>11} {'camera pass':>12}   (medians of {args.repeats}, seconds)")
+        print(f"{'technique':<14} {'light pass':>11} {'camera pass':>12}   (medians of {args.repeats}, seconds)")
         for technique, r in st.items():
-            print(f"{technique:<10} {r['light pass']:>11.3f} {r['camera pass']:>12.3f}")
+            print(f"{technique:<14} {r['light pass']:>11.3f} {r['camera pass']:>12.3f}")
         conn = st['bdpt']['camera pass'] - st['pt']['camera pass']
         print(f"connections (bdpt camera pass - pt camera pass): {conn:.3f} s; light pass of bdpt "
               f"(splats and stored vertices) {st['bdpt']['light pass']:.3f} s, of lt (splats only) "
