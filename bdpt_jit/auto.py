@@ -180,14 +180,14 @@ def warm_up(render):
 def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
     kernels' time in a render of ``spp`` (trial_spp), the least over its timings. The first
-    trial render of a configuration and size in a process runs once untimed before: its
+    trial render of a configuration, scene and size in a process runs once untimed before: its
     kernels' first run in a fresh process took up to twice the time of every later one (the
     caustic scene at 128 x 128 after the pilot: bdpt 0.0236 against 0.0125 s a spp, vcm 0.0355
     against 0.0180, the light vertex cache 1 x 4 alike), which chose the caches and pt over them
     in one-shot renders (the command's)."""
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
-    key = (repr(sorted(trial.settings.items())), crop, spp)
+    key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
     if key not in _WARM:
         _WARM.add(key)
         warm_up(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))

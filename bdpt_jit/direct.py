@@ -31,7 +31,8 @@ class DirectSampling:
         centre = dr.gather(mi.Point3f, self.sph_c, idx)
         d2 = dr.squared_norm(ref_p - centre)
         small = (r > 0) & (dr.square(r) < SMALL_SPHERE * d2)
-        sin2_max = dr.square(r) * safe_div(1.0, d2)
+        # (elsewhere a value that keeps the cone's arithmetic finite in the lanes it does not serve)
+        sin2_max = dr.select(small, dr.square(r) * safe_div(1.0, d2), SMALL_SPHERE)
         one_minus_cos_max = sin2_max / (1.0 + dr.safe_sqrt(1.0 - sin2_max))
         return small, centre, r, sin2_max, one_minus_cos_max
 

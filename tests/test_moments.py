@@ -332,3 +332,22 @@ def test_auto_never_chooses_a_candidate_that_misses_light():
     pt = by_name['pt']
     assert pt['missed'] > 0.01 and pt['efficiency'] == 0.0 and info['chosen'] != 'pt'
     assert all(c['missed'] == 0.0 for c in info['candidates'] if c['name'] != 'pt')
+
+
+def test_the_merging_pilot_measures_what_only_merges_sample():
+    """Looking down through a glass ball at the floor it shades from a point light: the floor
+    there is lit only by the caustic, seen through the glass (camera, glass, glass, floor,
+    glass, glass, light): only merges sample those paths. The merging pilot (vcm everywhere, as
+    auto's where the scene has glass) gives the candidates without merges, pt's and bdpt's
+    counts, a missed share (MomentFilm's 'missed' sums: kept for every candidate with a count
+    of 0, merges' included where the pilot merges) and vcm's none."""
+    scene = mi.load_dict({
+        'type': 'scene', 'sensor': _camera([0, 2.6, 0.01], [0, 0, 0], 16),
+        'floor': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3),
+                  'bsdf': _diffuse(0.7)},
+        'ball': {'type': 'sphere', 'center': [0, 1.2, 0], 'radius': 0.5, 'bsdf': {'type': 'dielectric'}},
+        'light': {'type': 'point', 'position': [0.3, 3, 0], 'intensity': {'type': 'rgb', 'value': [20, 20, 20]}},
+    })
+    _, (I, V, missed) = pilot(scene, 6, [(0.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 1.0, 1.0)], seed=7, **VCM_ALL)
+    assert missed[0] > 0.05 and missed[1] > 0.05 and missed[2] == 0.0, missed
+    assert np.all(np.isfinite(V))

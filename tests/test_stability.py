@@ -867,6 +867,46 @@ def test_sphere_emitter_sampling_irradiance(r, d):
     assert rel.max() < 1e-3, f'sampled density vs pdf_direct_w: max relative difference {rel.max():.3g}'
 
 
+@pytest.mark.parametrize('r,d', [(0.05, 1.0), (1e-3, 1.5), (0.05, 2.0)])
+def test_small_sphere_cone_sampling_is_uniform_in_solid_angle(r, d):
+    """`EmitterTable.sample_direct` on a small-looking sphere ((r/d)^2 < SMALL_SPHERE): each
+    sample is a point of the sphere (|p - c| = r) on its visible side, ds.d points at it, and
+    the directions are uniform in solid angle over the visible cone, the density it reports
+    (1 - cos(theta) / (1 - cos(theta_max)) uniform on [0, 1] by Kolmogorov-Smirnov at 1e-3, and
+    the azimuth uniform). The irradiance test cannot see this: in a cone this narrow a point on
+    the visible side in a wrong direction changes the cosine at the reference by little, while a
+    partly occluded light is then weighted wrongly. From a point that does not face the axis."""
+    from scipy import stats
+    from bdpt_jit.endpoints import EmitterTable
+    c = np.array([0.3, float(d), -0.2])
+    scene = mi.load_dict({'type': 'scene', 'light': {'type': 'sphere', 'center': c.tolist(), 'radius': r,
+                                                      'emitter': {'type': 'area', 'radiance': sc.rgb(1.0)}}})
+    tab = EmitterTable(scene)
+    n = 20_000
+    rng = np.random.default_rng(11)
+    it = dr.zeros(mi.SurfaceInteraction3f, n)
+    it.p = mi.Point3f(0.0, 0.0, 0.0)
+    it.n = mi.Normal3f(0.0, 1.0, 0.0)
+    u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
+    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    p, nrm, dd = (np.array(x, np.float64).reshape(3, -1).T for x in (ds.p, ds.n, ds.d))
+    assert np.all(np.isfinite(np.array(spec))) and np.all(np.array(spec[0]) > 0)
+    np.testing.assert_allclose(np.linalg.norm(p - c, axis=1), r, rtol=1e-4)
+    np.testing.assert_allclose(dd, p / np.linalg.norm(p, axis=1)[:, None], atol=1e-5)
+    assert np.all(np.sum(nrm * -p, axis=1) > 0)                         # the side that faces the point
+    dist = np.linalg.norm(c)
+    axis = c / dist
+    omc_max = (r / dist) ** 2 / (1 + np.sqrt(1 - (r / dist) ** 2))
+    q = p / np.linalg.norm(p, axis=1)[:, None]
+    omc = np.sum(np.cross(q, axis) ** 2, axis=1) / (1 + np.sum(q * axis, axis=1))     # 1 - cos(theta)
+    assert stats.kstest(omc / omc_max, 'uniform').pvalue > 1e-3
+    e1 = np.cross(axis, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    phi = np.arctan2(q @ np.cross(axis, e1), q @ e1)
+    assert stats.kstest((phi + np.pi) / (2 * np.pi), 'uniform').pvalue > 1e-3
+    np.testing.assert_allclose(np.array(ds.pdf), 1 / (2 * np.pi * omc_max), rtol=1e-3)
+
+
 def test_guard_connection_nearly_touching():
     """`camera_path.CameraTracer.strategy_st`: G = 1 / dist2 of the connection edge, guarded by
     `dist2 > 0` and `safe_div(1, dist2)`. In the corner at the origin (where float32 is
