@@ -193,8 +193,11 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         image = self.combine_segments(segments, spp, n_pixels)
         self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.trial_spp(sensor),
                                          'trial_s': decided_s, 'vertices_per_light_path': vpp,
+                                         # (relmse_1spp: the v the segment's weight used; a per-pixel candidate
+                                         # is built again at each decision, so 'candidates' may list a later one)
                                          'decisions': [{'chosen': seg['trial'].name, 'seconds': t, 'spp': seg['spp'],
-                                                        'weight': seg['weight']} for seg, t in zip(segments, took)],
+                                                        'relmse_1spp': seg['trial'].rel_var, 'weight': seg['weight']}
+                                                       for seg, t in zip(segments, took)],
                                          'candidates': [tr.report() for tr in trials]}
         return image
 

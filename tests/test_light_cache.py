@@ -437,6 +437,13 @@ def test_auto_decides_again_as_the_render_goes(monkeypatch):
         name = next(forced)
         return name if isinstance(name, auto.Trial) else next(tr for tr in trials if tr.name == name)
     monkeypatch.setattr(auto, 'rechoose', forced_rechoose)
+    from bdpt_jit.integrator import BDPTIntegrator
+    segment, rendered = BDPTIntegrator.auto_segment, []     # each segment's Trial (its maps, if per pixel)
+
+    def recorded(self, chosen, trial, *args):
+        rendered.append(trial)
+        return segment(self, chosen, trial, *args)
+    monkeypatch.setattr(BDPTIntegrator, 'auto_segment', recorded)
     scene = load_scene('cornell-box.xml', 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'strategy_images': True})
     img = np.array(mi.render(scene, integrator=integ, spp=64, seed=5))
@@ -445,14 +452,18 @@ def test_auto_decides_again_as_the_render_goes(monkeypatch):
     cands = {**{c['name']: c for c in info['auto']['candidates']}, mapped.name: mapped.report()}
     assert [d['chosen'] for d in decisions[1:]] == ['pt', 'bdpt', mapped.name]
     assert [d['spp'] for d in decisions] == [1, 1, 1, 61] and info['samples'] == 64 * 16 * 16
-    v = [cands[d['chosen']]['relmse_1spp'] for d in decisions]
+    # each segment's v is its candidate's pooled prediction when the segments combine: the
+    # candidates' list's, but for a per-pixel candidate of an earlier decision, which each
+    # decision builds again (the report's decisions keep the v each weight used)
+    v = [d['relmse_1spp'] for d in decisions]
+    assert all(x == cands[d['chosen']]['relmse_1spp'] for x, d in zip(v, decisions) if 'per pixel' not in d['chosen'])
     w = np.array([d['spp'] for d in decisions]) / np.array(v)
     np.testing.assert_allclose([d['weight'] for d in decisions], w / w.sum(), rtol=1e-12)
     expect = 0.0
     for k, d in enumerate(decisions):
-        alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **cands[d['chosen']]['settings']})
-        if d['chosen'] == mapped.name:
-            alone.pixel_counts = mapped.pixel_counts
+        alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **rendered[k].settings})
+        alone.pixel_counts = rendered[k].pixel_counts       # (None but for a per-pixel candidate)
+        assert rendered[k].name == d['chosen']
         seed = 5 + k * auto.SEGMENT_SEED if k else 5
         expect = expect + d['weight'] * np.array(mi.render(scene, integrator=alone, spp=int(d['spp']), seed=seed))
     np.testing.assert_allclose(img, expect, rtol=1e-4, atol=1e-6)
