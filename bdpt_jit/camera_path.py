@@ -138,7 +138,11 @@ class CameraTracer:
         e = self.emitter_edge(v, ds, ray, active) if c.media is not None else None
         tr = visibility(c, ray, active) if e is None else e.tr
         active &= visible(tr)
-        f, pdf_bsdf_w, pdf_rev_w, _ = v.eval(c, ds.d, RADIANCE, active)
+        if c.fuse_draw:     # with the scatter's BSDF sample, for every lane that scatters
+            f, pdf_bsdf_w, _ = v.eval_and_draw(c, ds.d, RADIANCE, self.ps.sampler, sub.active)
+            pdf_rev_w = v.pdf_rev_w(c, ds.d, RADIANCE, active)
+        else:
+            f, pdf_bsdf_w, pdf_rev_w, _ = v.eval(c, ds.d, RADIANCE, active)
         k = c.emitters.kinds(ds.emitter)
         pdf_emit_w = c.emitters.pdf_emit_w_at(ds.emitter, ds, -ds.d, k)
         pdf_direct_w, cos_e = c.emitters.direct_terms(ds, k)

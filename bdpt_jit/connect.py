@@ -18,25 +18,23 @@ def reverse_pdf_w(bsdf, ctx, si, wo_local, active, table=None):
     """Density of sampling the vertex's incoming direction ``si.wi`` when arriving from
     ``wo_local``: the same BSDF queried with the two directions swapped."""
     if table is not None:
-        mine = active & table.covers(bsdf)
-        pdf_t = table.pdf_rev_w(si, wo_local, mine)
-        if table.everything:
-            return pdf_t
-        active = active & ~mine
+        return table.pdf_rev_w(si, wo_local, active)
     si_rev = mi.SurfaceInteraction3f(si)
     si_rev.wi = wo_local
-    pdf = bsdf.pdf(ctx, si_rev, si.wi, active)
-    return pdf if table is None else dr.select(mine, pdf_t, pdf)
+    return bsdf.pdf(ctx, si_rev, si.wi, active)
 
 
 class DiffuseTable:
     """Mitsuba's ``diffuse`` BSDF with a constant reflectance, evaluated without a virtual
     call: its value R/pi cos_o and densities cos/pi (src/bsdfs/diffuse.cpp, one-sided: zero
     unless both directions are above the surface) from a table of reflectances indexed by
-    the BSDF's registry id. Lanes with another BSDF take Mitsuba's virtual calls; when every
-    BSDF of the scene is such a diffuse one (``everything``), those calls are not traced at
-    all. On the SmallVCM box (all diffuse) this replaces 4 of the 5 virtual calls of each
-    connection (measured +9% samples/s). The value is the same in both transport modes."""
+    the BSDF's registry id. Used only where every BSDF of the scene is such a diffuse one
+    (``everything``; context.diffuse_table): no BSDF call is traced at all. On the SmallVCM box
+    (all diffuse) this replaced 4 of the 5 virtual calls of each connection (+9% samples/s).
+    In a scene that mixes them with other BSDFs, a table for some lanes beside Mitsuba's calls
+    for the others was slower than the calls alone (the gathers and selects; the calls stay):
+    veach-mis pt 5%, bdpt 7%, caustic.xml pt 3%, bdpt 6% (seventeenth session). The value is the
+    same in both transport modes."""
 
     def __init__(self, scene):
         bsdfs = {}
@@ -51,10 +49,8 @@ class DiffuseTable:
             r = self.constant_reflectance(b)
             if r is not None:
                 refl[:, i], covered[i] = r, True
-        self.any = bool(covered.any())
         self.everything = bool(bsdfs) and all(bool(covered[i]) for i in bsdfs)
         self.refl = mi.Color3f(refl[0], refl[1], refl[2])
-        self.covered = mi.Bool(covered)
 
     @staticmethod
     def constant_reflectance(bsdf):
@@ -68,11 +64,6 @@ class DiffuseTable:
             return None
         v = np.array(params['reflectance.value'], dtype=np.float64).ravel()
         return np.broadcast_to(v, 3) if v.size in (1, 3) else None
-
-    def covers(self, bsdf):
-        if self.everything:
-            return mi.Bool(True)
-        return dr.gather(mi.Bool, self.covered, dr.reinterpret_array(mi.UInt32, bsdf))
 
     def eval_pdf(self, si, bsdf, wo_local, active):
         """(R/pi cos_o, cos_o/pi, cos_i/pi): value, forward and reverse densities."""
@@ -143,39 +134,25 @@ def adjoint_eval(si, bsdf, wo_local, wo_world, active):
 
 
 def sample_bsdf(bsdf, mode, si, u1, u2, active, table=None):
-    """``bsdf.sample``, with the table's lanes sampled without a virtual call."""
-    if table is None:
-        return bsdf.sample(mode, si, u1, u2, active)
-    mine = active & table.covers(bsdf)
-    bs_t, w_t = table.sample(si, bsdf, u2, mine)
-    if table.everything:
-        return bs_t, w_t
-    bs, w = bsdf.sample(mode, si, u1, u2, active & ~mine)
-    for k in ('wo', 'pdf', 'eta', 'sampled_type', 'sampled_component'):
-        setattr(bs, k, dr.select(mine, getattr(bs_t, k), getattr(bs, k)))
-    return bs, dr.select(mine, w_t, w)
+    """``bsdf.sample``, or the table's sample without a virtual call."""
+    if table is not None:
+        return table.sample(si, bsdf, u2, active)
+    return bsdf.sample(mode, si, u1, u2, active)
 
 
 def smooth_mask(bsdf, table=None):
     """Lanes whose BSDF has a smooth (non-delta) component: all of them in a table-only scene."""
-    if table is not None and table.everything:
+    if table is not None:
         return mi.Bool(True)
     return mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
 
 
 def _eval_pdf_both(bsdf, mode, si, wo_local, active, table):
-    """(value, forward density, reverse density) from the table's lanes and Mitsuba's."""
+    """(value, forward density, reverse density): the table's, or Mitsuba's."""
     if table is not None:
-        mine = active & table.covers(bsdf)
-        f_t, pdf_t, rev_t = table.eval_pdf(si, bsdf, wo_local, mine)
-        if table.everything:
-            return f_t, pdf_t, rev_t
-        active = active & ~mine
+        return table.eval_pdf(si, bsdf, wo_local, active)
     f, pdf_fwd_w = bsdf.eval_pdf(mode, si, wo_local, active)
-    pdf_rev_w = reverse_pdf_w(bsdf, mode, si, wo_local, active)
-    if table is None:
-        return f, pdf_fwd_w, pdf_rev_w
-    return dr.select(mine, f_t, f), dr.select(mine, pdf_t, pdf_fwd_w), dr.select(mine, rev_t, pdf_rev_w)
+    return f, pdf_fwd_w, reverse_pdf_w(bsdf, mode, si, wo_local, active)
 
 
 def eval_camera_vertex(si, bsdf, wo_world, active, table=None):

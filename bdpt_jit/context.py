@@ -27,12 +27,18 @@ from .strategies import StrategySet
 
 
 def diffuse_table(scene):
-    """connect.DiffuseTable of the scene, or None if it covers no BSDF (or cannot see them all:
-    instanced shapes' BSDFs are not in scene.shapes())."""
+    """connect.DiffuseTable of the scene where it covers every BSDF (a table beside Mitsuba's
+    calls for other BSDFs is slower than the calls alone: its docstring), else None (also
+    where it cannot see them all: instanced shapes' BSDFs are not in scene.shapes())."""
     if has_instances(scene) or not mi.is_rgb:
         return None                 # (its reflectances are RGB: spectral and mono use the BSDFs)
     table = DiffuseTable(scene)
-    return table if table.any else None
+    return table if table.everything else None
+
+
+# a vertex's emitter-sampling (or splat) evaluation and its scatter's BSDF sample in one call
+# where the scene allows it (Context.fuse_draw); False: two calls (for tests)
+FUSE_DRAW = True
 
 
 class _NoSplats:
@@ -61,7 +67,9 @@ class Context:
     refracts           the scene has a BSDF with a transmission lobe that refracts (scene_refracts)
     exact_adjoint      a BSDF perturbs its shading frame (connect.adjoint_eval)
     record             the light-vertex record type (store.record_type)
-    diffuse            connect.DiffuseTable, or None when no BSDF is a constant diffuse
+    diffuse            connect.DiffuseTable, or None unless every BSDF is a constant diffuse
+    fuse_draw          a camera vertex's emitter-sampling evaluation and its scatter's BSDF sample
+                       made in one BSDF call (vertex.Vertex.eval_and_draw)
     inv_spp            1 / spp, opaque: camera-sample contributions to the strategy layers
     splat_scale        the light image's scale per splat (film.FilmAccumulator.splat_scale), opaque
     layers             film.StrategyLayers, or None (parameter strategy_images)
@@ -115,6 +123,8 @@ class Context:
         self._record = None     # the stored light vertices' type: built when a store asks (record)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
         self.diffuse = None if ad else diffuse_table(scene)
+        # (the table makes no call to fuse; media and differentiable passes sample elsewhere)
+        self.fuse_draw = FUSE_DRAW and self.diffuse is None and not ad and self.media is None
         # opaque: literals would be baked into the kernels and recompile them for every spp
         self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))

@@ -119,14 +119,18 @@ class LightTracer:
             pixel, inside = self.pixels.index(uv + c.camera.crop_offset, active)
             self.mis.eval_counts = c.pixel_counts.counts(pixel, self.ps.vpp, self.ps.n_lt, inside)
 
-    def strategy_t1(self, v, sub, active):
+    def strategy_t1(self, v, sub, active, scatters):
         """t=1 (s >= 2): the light vertex ``v`` connected to the camera and splatted to the
-        light image."""
+        light image (``scatters``: the lanes that scatter at ``v`` next: Vertex.eval_and_draw)."""
         c = self.ctx
         si = v.si
         ds, sensor_w = c.sensor.sample_direction(si, self.sampler.next_2d(), active)
         ok = active & (ds.pdf > 0)
-        f, pdf_fwd_w, pdf_rev_w, valid = v.eval(c, ds.d, IMPORTANCE, ok)
+        if c.fuse_draw and not c.exact_adjoint:     # with the scatter's BSDF sample
+            f, _, valid = v.eval_and_draw(c, ds.d, IMPORTANCE, self.sampler, scatters | ok)
+            pdf_rev_w = v.pdf_rev_w(c, ds.d, IMPORTANCE, ok & valid)
+        else:
+            f, _, pdf_rev_w, valid = v.eval(c, ds.d, IMPORTANCE, ok)
         ok &= valid & (dr.max(f) > 0)
         ray = v.spawn_to(c, ds.p, mi.Normal3f(0.0), 0.0)
         et = self.camera_edge(ray, ds, v.medium_towards(ds.d), v, ok) if c.media is not None else None
@@ -201,9 +205,10 @@ class LightTracer:
             do_store = sub.active & smooth & (sub.depth + store_edges <= max_edges)
             store.record.store(store.v, store.record.make(v, sub), store.slot(count, self.idx), do_store)
             count = count + dr.select(do_store, 1, 0)
+        scatters = sub.active & (sub.depth + 2 <= max_edges)
         if self.splats and c.strategies.trace_splat:
-            self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges))
-        sub.active = sub.active & (sub.depth + 2 <= max_edges)
+            self.strategy_t1(v, sub, sub.active & smooth & (sub.depth + 1 <= max_edges), scatters)
+        sub.active = scatters
         if c.media is not None and self.mis.mis_merges:
             return sub, (count,), v.merge_factor(self.mis, c.media.info)
         return sub, (count,), True

@@ -53,9 +53,12 @@ def _sample(ctx, mode, sampler, v, active):
     or None, the samples, the relative index of refraction crossed (None where the scene does
     not refract or the mode is importance: the roulette's, ``scatter``))."""
     si = v.si
-    u1, u2 = sampler.next_1d(), sampler.next_2d()
-    bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
-                                       si, u1, u2, active)
+    if getattr(v, 'drawn', None) is not None:      # drawn with the emitter sample's evaluation (Vertex.eval_and_draw)
+        bs, bsdf_w, (u1, u2) = v.drawn
+    else:
+        u1, u2 = sampler.next_1d(), sampler.next_2d()
+        bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
+                                              si, u1, u2, active)
     wo_world = si.to_world(bs.wo)
     factor = bsdf_w
     if mode != RADIANCE:       # the adjoint's shading-normal factor (connect.adjoint_correction)
