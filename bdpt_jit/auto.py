@@ -10,7 +10,9 @@ SIGGRAPH 2022) and each candidate's measured time.
    its weights and densities kept per family of sample counts (moments.FamilyMIS). From its samples, per pixel, each candidate's variance of a
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
-   caustic from a point light, a directional area emitter).
+   caustic from a point light, a directional area emitter). Where merging candidates are
+   offered the pilot merges everywhere (vcm, merge_everywhere); a candidate merging behind
+   delta vertices only (BEHIND_DELTA) has a pilot of its own merge set.
 2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
    pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
    t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
@@ -66,6 +68,7 @@ MAX_DECISIONS = 4               # decisions in one render at most, the first inc
 SEGMENT_SEED = 1 << 29          # segment k of a render renders with the caller's seed plus k times this
 PER_PIXEL = 1.1                 # a per-pixel candidate is chosen only if this many times as efficient
                                 # as the best of the others (its v is the least of noisy estimates per pixel)
+BEHIND_DELTA = 'vcm behind delta'     # the classic estimator merging where vcm does by default
 MERGE_KEEP = 0.02               # a pixel whose pilot image is this share merges or more keeps merging
 
 
@@ -77,7 +80,9 @@ class Trial:
         self.settings = settings        # its parameters over the caller's
         self.counts = counts            # (n_c, n_lt, n_m) of its MIS [Veach 9.2.2]
         self.cache = cache              # (light_paths, connections) of a cache, or None
-        self.merges = counts[2] > 0     # it merges (technique vcm, everywhere)
+        self.merges = counts[2] > 0     # it merges (technique vcm, everywhere unless behind_delta)
+        self.behind_delta = settings.get('technique') == 'vcm' and not settings.get('merge_everywhere', False)
+        #                                 it merges behind delta vertices only (vcm's default merge set)
         self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.timings = 0                # how many: its seconds are their minimum (a second job's load only adds)
@@ -121,13 +126,17 @@ def candidates(ctx, vpp):
     """The candidates for the scene of Context ``ctx`` (technique bdpt): path tracing, the
     classic estimator and the light vertex caches of LIGHT_PATHS x CONNECTIONS (where connections
     exist, max_depth >= 3, and not in spectral variants), and where ``offers_merging``, each of
-    the bidirectional ones merging everywhere (technique vcm); ``vpp``: the stored vertices per
+    the bidirectional ones merging everywhere (technique vcm), and in a scene with a delta BSDF
+    the classic estimator merging behind delta vertices only (vcm's own merge set, BEHIND_DELTA:
+    predicted by a pilot of that merge set, ``pilot``); ``vpp``: the stored vertices per
     light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs."""
     merging = offers_merging(ctx)
     vcm = {'technique': 'vcm', 'merge_everywhere': True}
     out = [Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0)), Trial('bdpt', {}, (1.0, 1.0, 0.0))]
     if merging:
         out.append(Trial('vcm', vcm, (1.0, 1.0, 1.0)))
+    if merging and ctx.has_delta:       # vcm's own merge set: merges behind delta vertices only
+        out.append(Trial(BEHIND_DELTA, {'technique': 'vcm'}, (1.0, 1.0, 1.0)))
     if not ctx.strategies.trace_connect or mi.is_spectral:
         return out
     for m in ((False, True) if merging else (False,)):
@@ -232,10 +241,22 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
     estimates the same quantities from independent samples)."""
     trials = [tr for tr in trials if tr.parts is None]          # (per-pixel candidates: from these)
+    for group, behind_delta in (([tr for tr in trials if not tr.behind_delta], False),
+                                ([tr for tr in trials if tr.behind_delta], True)):
+        if group:
+            pilot_group(make, group, behind_delta, scene, sensor, seed + TRIAL_SEED + 2 * index)
+
+
+def pilot_group(make, trials, behind_delta, scene, sensor, seed):
+    """``pilot`` for the trials of one merge set (``behind_delta``: vcm's own, merges behind
+    delta vertices only; else everywhere where a trial merges): one pilot render."""
     merging = any(tr.merges for tr in trials)
-    integ = make({'mis': 'balance', 'technique': 'vcm', 'merge_everywhere': True} if merging else {'mis': 'balance'})
+    settings = {'mis': 'balance'}
+    if merging:
+        settings.update(technique='vcm', merge_everywhere=not behind_delta)
+    integ = make(settings)
     integ.moment_counts = [tr.counts for tr in trials]
-    integ.render(scene, sensor, seed=seed + TRIAL_SEED + 2 * index, spp=PILOT_SPP)
+    integ.render(scene, sensor, seed=seed, spp=PILOT_SPP)
     film = integ.moment_film
     image, V, missed = film.estimates(PILOT_SPP)
     denom = image ** 2 + DENOM

@@ -29,9 +29,11 @@ merge's eta is eta times the merge family's), so the recursion of mis.py (every 
 linear in its quantities; 1 / eta, the merges' own scale, is a number) carries each family's
 terms in its own component. Its weights dot the vector with a configuration's counts: with
 counts (1, 1, 1) they are the pilot's own balance weights, and they hand the vector to the
-``MomentFilm`` (the tap) that the strategy that asked for them then adds its sample to. A pilot
-that merges merges everywhere (``merge_everywhere``): whether a merge behind a non-delta vertex
-is a strategy is not a count, so the merging candidates are those that merge everywhere."""
+``MomentFilm`` (the tap) that the strategy that asked for them then adds its sample to. Whether
+a merge behind a non-delta vertex is a strategy is not a count: a pilot predicts the candidates
+of its own merge set, everywhere (``merge_everywhere``) or behind delta vertices only (vcm's
+default; the light side's deferred merge terms are family vectors too), and auto runs one pilot
+per merge set among its candidates."""
 
 import drjit as dr
 import mitsuba as mi
@@ -60,7 +62,7 @@ class FamilyMIS(MIS):
     the configuration whose weights it returns, (n_c, n_lt, n_m) (floats, or arrays of the
     lanes whose weights are formed next: per-pixel counts, pixel_counts.py); ``tap``: the
     MomentFilm that receives each weight's family vector R (or None); ``merge_everywhere``: the
-    merge set of a pilot that merges (it must merge everywhere, see above). ``kind``: the
+    merge set of a pilot that merges (see above). ``kind``: the
     heuristic; under the power heuristic h(n p) = h(n) h(p), so each family's terms are h of
     the densities and the weights dot them with h of the counts (the families' unit vectors
     are their own h), the same linear recursion; the moment film (tap) needs the balance's."""
@@ -69,9 +71,6 @@ class FamilyMIS(MIS):
         if tap is not None and kind != 'balance':
             raise ValueError('moments: the moment film predicts balance-heuristic variances')
         super().__init__(kind, strategies, merge_everywhere=merge_everywhere)
-        if self.mis_merges and not merge_everywhere:
-            raise ValueError('moments: a pilot that merges merges everywhere (merge_everywhere): '
-                             'merges behind delta vertices only are not a family of counts')
         self.n_c = Family(0.0, 1.0, 0.0, 0.0)   # the families' counts: their unit vectors
         self.n_lt = Family(0.0, 0.0, 1.0, 0.0)
         self.merge_unit = Family(0.0, 0.0, 0.0, 1.0)
@@ -118,6 +117,16 @@ class FamilyMIS(MIS):
 
     def light_init(self, pdf_emit_w, cos_e, is_delta=False):
         return _one(super().light_init(pdf_emit_w, cos_e, is_delta))        # s=0: family one
+
+    def light_start(self, pdf_emit_w, cos_e, is_delta, pdf_direct_a, dist2, cos_hit):
+        st = super().light_start(pdf_emit_w, cos_e, is_delta, pdf_direct_a, dist2, cos_hit)
+        if self.pending:                    # merges behind delta vertices: the deferred terms are family vectors
+            st.pend_vc, st.pend_vm = Family(st.pend_vc), Family(st.pend_vm)
+        return st
+
+    def pending_after_scatter(self, cos_out, pdf_fwd_w, is_delta, mergeable=True):
+        pend_vc, pend_vm = super().pending_after_scatter(cos_out, pdf_fwd_w, is_delta, mergeable)
+        return pend_vc, pend_vm * self.merge_unit        # [VCM (36)] the merge's own term, in the merge family
 
     def light_first_hit(self, d_vc, pdf_emit_w, pdf_direct_a, dist2, cos_hit):
         d_vcm = _one(self.h(pdf_direct_a / pdf_emit_w))                     # [eq. 22] s=1: family one

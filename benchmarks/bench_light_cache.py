@@ -7,7 +7,8 @@ relative MSE at equal time against a reference rendered by ``path`` (``--ref-int
 
 A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
 ``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``vcm`` and ``vcm_all`` vertex
-merging (behind delta vertices; everywhere), ``auto`` technique auto (its
+merging (behind delta vertices; everywhere), ``vcm:R:C`` and ``vcm_all:R:C`` their light vertex
+caches, ``auto`` technique auto (its
 choice, the pilot and the trials, inside the budget; the choice in the last column). Each contestant renders one
 warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
 passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
@@ -56,6 +57,10 @@ def contestant(name, max_depth):
         return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'auto'}
     if name in ('vcm', 'vcm_all'):
         return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'merge_everywhere': name == 'vcm_all'}
+    if name.startswith(('vcm:', 'vcm_all:')):          # a merging cache: vcm[_all]:RATIO:C
+        kind, ratio, c = name.split(':')
+        return {'type': 'bdpt', 'max_depth': max_depth, 'technique': 'vcm', 'merge_everywhere': kind == 'vcm_all',
+                'light_paths': float(ratio), 'connections': int(c)}
     ratio, c = name.split(':')
     return {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': float(ratio),
             'connections': -1 if c == 'auto' else int(c)}

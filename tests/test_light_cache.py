@@ -350,7 +350,8 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     the most efficient candidate, and the image is that candidate's render with the caller's seed
     (the pilot and the trials share no sample with it: no bias from the choice). Merging
     candidates (vcm everywhere) where the scene has a glossy or delta BSDF (the caustic's glass),
-    none among diffuse walls (the Cornell box)."""
+    and with a delta BSDF vcm's own merge set (behind delta vertices, timed, from a pilot of its
+    own), none among diffuse walls (the Cornell box)."""
     from bdpt_jit import auto
     scene = load_scene(scene_name, 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
@@ -358,7 +359,8 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     info = integ.last_render_info['auto']
     names = [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
     caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
-    assert names == ['pt', 'bdpt'] + (['vcm'] + caches + ['vcm ' + c for c in caches] if merging else caches)
+    assert names == ['pt', 'bdpt'] + (['vcm', auto.BEHIND_DELTA] + caches + ['vcm ' + c for c in caches]
+                                      if merging else caches)
     for c in info['candidates']:        # the per-pixel candidates (auto.per_pixel_trials): maps of those caches
         if 'per pixel' in c['name']:
             lp = c['settings']['light_paths']
@@ -383,7 +385,7 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     timed = {c['name']: c['seconds_per_spp'] for c in info['candidates'] if c['timed']}
     want = ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
     if merging:
-        want += ['vcm', 'vcm cache {:g}x{}'.format(*auto.TIMED_MERGING)]
+        want += ['vcm', auto.BEHIND_DELTA, 'vcm cache {:g}x{}'.format(*auto.TIMED_MERGING)]
     assert set(want) <= set(timed) and best['timed']
     t = {c['name']: c['seconds_per_spp'] for c in info['candidates']}
     b = max((t['cache 1x1'] - t['cache 0.25x1']) / 0.75, 0.0)

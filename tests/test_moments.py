@@ -44,22 +44,24 @@ def test_family_weights_equal_the_brute_force_with_counts(kind, which, k, emitte
 @pytest.mark.parametrize('camera', ['pinhole', 'delta'])
 @pytest.mark.parametrize('emitter', tmp.KINDS)
 @pytest.mark.parametrize('k', [2, 3, 5])
-@pytest.mark.parametrize('which', ['random', 'no merges', 'media'])
+@pytest.mark.parametrize('which', ['random', 'no merges', 'media', 'behind delta'])
 @pytest.mark.parametrize('kind', ['balance', 'power'])
 def test_family_weights_with_merges_equal_the_brute_force(kind, which, k, emitter, camera):
     """The merge family: vcm merging everywhere with random counts (n_c, n_lt, n_m), n_m 0
     on half the paths (a candidate that does not merge), in scenes with media too (merges
-    at medium vertices, 4/3 pi r^3 N): FamilyMIS's weights equal the brute force's (1e-5), whose
-    merge densities are eta n_m."""
+    at medium vertices, 4/3 pi r^3 N), and vcm merging behind delta vertices only (the light
+    side's deferred merge terms in the merge family): FamilyMIS's weights equal the brute
+    force's (1e-5), whose merge densities are eta n_m."""
     rng = np.random.default_rng(71_000 + 100 * k + 7 * tmp.KINDS.index(emitter) + 3 * len(which))
     P = tmp.random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=which == 'media')
     P['camera'] = camera
     n_c, n_lt = tlc.random_counts(rng)
     n_m = np.zeros(tmp.M) if which == 'no merges' else rng.uniform(0.0, 4.0, size=tmp.M) * rng.integers(0, 2, tmp.M)
     F = lambda a: tmp.aligned(tmp.mi.Float, a, np.float64)         # noqa: E731
-    w_fam = tmp.recursive(kind, 'vcm_all', P, make_mis=lambda s: FamilyMIS(
-        s, counts=(F(n_c), F(n_lt), F(n_m)), merge_everywhere=True, kind=kind))
-    w_ref = tmp.brute_force(kind, 'vcm_all', P, counts=(n_c, n_lt, n_m))
+    technique = 'vcm' if which == 'behind delta' else 'vcm_all'
+    w_fam = tmp.recursive(kind, technique, P, make_mis=lambda s: FamilyMIS(
+        s, counts=(F(n_c), F(n_lt), F(n_m)), merge_everywhere=technique == 'vcm_all', kind=kind))
+    w_ref = tmp.brute_force(kind, technique, P, counts=(n_c, n_lt, n_m))
     assert np.all(np.isfinite(w_fam))
     np.testing.assert_allclose(w_fam, w_ref, rtol=1e-5, atol=1e-7)
     if which == 'no merges':    # the merges' weights 0: the connections' and splats' are bdpt's with these counts
@@ -80,16 +82,18 @@ def pilot(scene, max_depth, counts, seed, spp=4, **props):
 VCM_ALL = {'technique': 'vcm', 'merge_everywhere': True}
 
 
-@pytest.mark.parametrize('name', ['cornell', 'fog room', 'caustic, merging'])
+@pytest.mark.parametrize('name', ['cornell', 'fog room', 'caustic, merging', 'caustic, merging behind delta'])
 def test_the_pilot_renders_the_classic_balance_image(name):
     """With counts (1, 1, 1) the family weights are the pilot's own balance weights: the
     pilot's image is bdpt's with mis=balance and the same seed, up to float32 rounding (a wrong
     family sum would move every pixel), and the moment film's image (nearest pixel) is the
     film's (a box filter); in a scene with media too (the distance densities in the families),
     and vcm's merging everywhere where auto offers merging (the merge family; the film takes each
-    merge: its image is the film's only if every merge reaches it)."""
+    merge: its image is the film's only if every merge reaches it), and vcm's own merge set
+    (merges behind delta vertices: the light side's deferred merge terms in the families)."""
     D = 3 if name == 'fog room' else 4
-    props = VCM_ALL if 'merging' in name else {}
+    # (behind delta vertices, at a radius where merges carry ~2% of this small image)
+    props = ({'technique': 'vcm', 'radius': 0.1} if 'behind delta' in name else VCM_ALL) if 'merging' in name else {}
     scene = (mi.load_dict(media_scenes.fog_room(res=12)) if name == 'fog room'
              else load_scene('caustic.xml' if 'caustic' in name else 'cornell-box.xml', 16, D))
     img, (I, V, missed) = pilot(scene, D, [(0.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 1.0, 1.0)], seed=7, **props)
@@ -192,6 +196,7 @@ def mean_and_error(values):
     ('cache 1x4', {'light_paths': 1.0, 'connections': 4}),
     ('vcm', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0}),
     ('cache 1x per pixel', {'light_paths': 1.0, 'connections': 1}),
+    ('vcm behind delta', {'technique': 'vcm', 'radius': 0.1, 'radius_alpha': 1.0}),
 ])
 def test_predicted_variance_agrees_with_the_rendered(name, props):
     """Issue 22's test 3: each candidate's variance predicted from the pilots' samples agrees
@@ -208,12 +213,12 @@ def test_predicted_variance_agrees_with_the_rendered(name, props):
     pixel, test_light_cache.pixel_maps): its prediction per pixel that of its pixel's cache, as
     auto.per_pixel_trials composes it."""
     D = 4
-    scene = load_scene('cornell-box.xml', 16, D)
+    scene = load_scene('caustic.xml' if 'behind delta' in name else 'cornell-box.xml', 16, D)
     base = {'type': 'bdpt', 'max_depth': D, 'mis': 'balance', **props}
     if 'per pixel' in name:
         return _per_pixel_prediction(scene, D, base)
-    pilot_props = props if name == 'vcm' else {}
-    counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0), 'vcm': (1.0, 1.0, 1.0)}.get(name)
+    pilot_props = props if name.startswith('vcm') else {}
+    counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0), 'vcm': (1.0, 1.0, 1.0), 'vcm behind delta': (1.0, 1.0, 1.0)}.get(name)
     if counts is None:          # the cache's n_c = c / (V / n_L) of its own pilot light pass
         integ = mi.load_dict(base)
         mi.render(scene, integrator=integ, spp=1, seed=0)
