@@ -8,11 +8,11 @@ import drjit as dr
 import mitsuba as mi
 
 from . import media_path
-from .connect import CTX_IMPORTANCE, CTX_RADIANCE, adjoint_correction, adjoint_eval, reverse_pdf_w
+from .connect import adjoint_correction, adjoint_eval, reverse_pdf_w
 from .jitmath import safe_div
 from .mis import MISState
 from .roulette import roulette
-from .vertex import RADIANCE
+from .vertex import RADIANCE, bsdf_context
 
 
 class Subpath:
@@ -34,7 +34,7 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
     """(throughput factor of an importance-mode sample where the exact adjoint replaces it, or
     None; the reverse density of the incident direction) at vertex ``v``."""
     si, bsdf = v.si, v.bsdf
-    bsdf_ctx = CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
+    bsdf_ctx = bsdf_context(mode)
     if mode != RADIANCE and ctx.exact_adjoint:
         # BSDFs with their own shading frame (normal/bump maps): the exact adjoint value over
         # the sampling density for smooth samples (Veach's factor for delta ones: the caller's)
@@ -57,8 +57,7 @@ def _sample(ctx, mode, sampler, v, active):
         bs, bsdf_w, (u1, u2) = v.drawn
     else:
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE,
-                                              si, u1, u2, active)
+        bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, bsdf_context(mode), si, u1, u2, active)
     wo_world = si.to_world(bs.wo)
     factor = bsdf_w
     if mode != RADIANCE:       # the adjoint's shading-normal factor (connect.adjoint_correction)

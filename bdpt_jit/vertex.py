@@ -19,6 +19,11 @@ RADIANCE = 'radiance'           # a camera subpath's vertex: it transports radia
 IMPORTANCE = 'importance'       # a light subpath's vertex: it transports importance
 
 
+def bsdf_context(mode):
+    """Mitsuba's BSDF context of a transport mode (RADIANCE or IMPORTANCE)."""
+    return CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
+
+
 class Vertex:
     """One vertex, one field a line (a Dr.Jit struct: it can be stored, selected, carried)."""
     DRJIT_STRUCT = {
@@ -68,8 +73,7 @@ class Vertex:
         (importance mode there: connect.adjoint_eval)."""
         u1, u2 = sampler.next_1d(), sampler.next_2d()
         wo_local = self.si.to_local(wo_world)
-        bsdf_ctx = CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
-        f, pdf_fwd_w, bs, bsdf_w = self.bsdf.eval_pdf_sample(bsdf_ctx, self.si, wo_local, u1, u2, active)
+        f, pdf_fwd_w, bs, bsdf_w = self.bsdf.eval_pdf_sample(bsdf_context(mode), self.si, wo_local, u1, u2, active)
         self.drawn = (bs, bsdf_w, (u1, u2))
         if mode == RADIANCE:
             return f, pdf_fwd_w, active
@@ -78,8 +82,7 @@ class Vertex:
 
     def pdf_rev_w(self, ctx, wo_world, mode, active):
         """The density of the incident direction given ``wo_world`` (``eval``'s pdf_rev_w)."""
-        bsdf_ctx = CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
-        return reverse_pdf_w(self.bsdf, bsdf_ctx, self.si, self.si.to_local(wo_world), active, ctx.diffuse)
+        return reverse_pdf_w(self.bsdf, bsdf_context(mode), self.si, self.si.to_local(wo_world), active, ctx.diffuse)
 
     def spawn(self, d):
         """An extension ray in the unit direction ``d``."""

@@ -830,6 +830,23 @@ def test_guard_emitter_sampling_density_infinite():
     assert np.all(np.isfinite(pd)), f'{np.sum(~np.isfinite(pd))} of {pd.size} first-hit densities not finite'
 
 
+def _sphere_light_samples(center, r, n, seed):
+    """(EmitterTable, reference points, DirectionSample3f, weights): ``n`` emitter samples
+    (`EmitterTable.sample_direct`) of a sphere light of radiance 1, radius ``r`` at ``center``,
+    from the origin with its normal +y."""
+    from bdpt_jit.endpoints import EmitterTable
+    scene = mi.load_dict({'type': 'scene', 'light': {'type': 'sphere', 'center': list(center), 'radius': r,
+                                                      'emitter': {'type': 'area', 'radiance': sc.rgb(1.0)}}})
+    tab = EmitterTable(scene)
+    rng = np.random.default_rng(seed)
+    it = dr.zeros(mi.SurfaceInteraction3f, n)
+    it.p = mi.Point3f(0.0, 0.0, 0.0)
+    it.n = mi.Normal3f(0.0, 1.0, 0.0)
+    u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
+    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    return tab, it, ds, spec
+
+
 @pytest.mark.parametrize('r,d', [(0.3, 1.0), (0.05, 1.0), (1e-3, 1.5), (1e-4, 1.5), (1e-4, 250.0), (1.0, 250.0)])
 def test_sphere_emitter_sampling_irradiance(r, d):
     """s=1 on a sphere emitter, isolated: `EmitterTable.sample_direct` from a point at distance
@@ -843,17 +860,9 @@ def test_sphere_emitter_sampling_irradiance(r, d):
     is E to within 1 - cos(theta_max) (until the sixteenth session the cap was sampled uniformly by
     area: a relative standard deviation of ~0.58, the cosine at the light, in every s=1 sample
     of a small sphere light; it fails the spread asserted here)."""
-    from bdpt_jit.endpoints import SMALL_SPHERE, EmitterTable
-    scene = mi.load_dict({'type': 'scene', 'light': {'type': 'sphere', 'center': [0.0, float(d), 0.0], 'radius': r,
-                                                      'emitter': {'type': 'area', 'radiance': sc.rgb(1.0)}}})
-    tab = EmitterTable(scene)
+    from bdpt_jit.endpoints import SMALL_SPHERE
     n = 200_000
-    rng = np.random.default_rng(7)
-    it = dr.zeros(mi.SurfaceInteraction3f, n)
-    it.p = mi.Point3f(0.0, 0.0, 0.0)
-    it.n = mi.Normal3f(0.0, 1.0, 0.0)
-    u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
-    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    tab, it, ds, spec = _sphere_light_samples([0.0, float(d), 0.0], r, n, seed=7)
     x = np.array(spec[0] * dr.maximum(ds.d.y, 0.0))
     assert np.all(np.isfinite(x))
     expect = math.pi * (r / d) ** 2
@@ -877,18 +886,9 @@ def test_small_sphere_cone_sampling_is_uniform_in_solid_angle(r, d):
     the visible side in a wrong direction changes the cosine at the reference by little, while a
     partly occluded light is then weighted wrongly. From a point that does not face the axis."""
     from scipy import stats
-    from bdpt_jit.endpoints import EmitterTable
     c = np.array([0.3, float(d), -0.2])
-    scene = mi.load_dict({'type': 'scene', 'light': {'type': 'sphere', 'center': c.tolist(), 'radius': r,
-                                                      'emitter': {'type': 'area', 'radiance': sc.rgb(1.0)}}})
-    tab = EmitterTable(scene)
     n = 20_000
-    rng = np.random.default_rng(11)
-    it = dr.zeros(mi.SurfaceInteraction3f, n)
-    it.p = mi.Point3f(0.0, 0.0, 0.0)
-    it.n = mi.Normal3f(0.0, 1.0, 0.0)
-    u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
-    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    _, _, ds, spec = _sphere_light_samples(c.tolist(), r, n, seed=11)
     p, nrm, dd = (np.array(x, np.float64).reshape(3, -1).T for x in (ds.p, ds.n, ds.d))
     assert np.all(np.isfinite(np.array(spec))) and np.all(np.array(spec[0]) > 0)
     np.testing.assert_allclose(np.linalg.norm(p - c, axis=1), r, rtol=1e-4)
