@@ -216,7 +216,9 @@ class CameraTracer:
         j_end = dr.minimum(n_light, mi.UInt32(c.max_depth_edges) - dr.minimum(sub.depth + 1, c.max_depth_edges))
         L = mi.Spectrum(0.0)
         j = mi.UInt32(0)
-        while dr.hint(active & (j < j_end), label='bdpt_connect'):
+        # (v, sub and the rest are read, not changed: out of the loop state, as Dr.Jit would
+        # otherwise take them out by recording the loop again: loops.py)
+        while dr.hint(active & (j < j_end), label='bdpt_connect', exclude=[v, sub, active, idx, j_end]):
             L += self.strategy_st(slot_of(j, idx), j, v, sub, active, merge_z)
             j += 1
             sampler = sampler       # (named in the loop: its state is loop state)

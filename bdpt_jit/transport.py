@@ -10,6 +10,7 @@ import mitsuba as mi
 from . import media_path
 from .connect import adjoint_correction, adjoint_eval, reverse_pdf_w
 from .jitmath import safe_div
+from .loops import while_once
 from .mis import MISState
 from .roulette import roulette
 from .vertex import RADIANCE, bsdf_context
@@ -131,7 +132,6 @@ def arrive(mis, mode, sub, si, ray, dist2):
     return Subpath(sub.beta, sub.beta_start, st, sub.depth + 1, active)
 
 
-@dr.syntax
 def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
     """The random walk of a subpath from its hit ``si`` (found by ``ray``), the same loop for
     both directions: at each vertex the tracer evaluates its strategies, then the walk scatters
@@ -147,14 +147,23 @@ def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
                              the step's segment (beams.py; ``scattered``: the Subpath before the step)
 
     ``carry``: the tracer's own loop state (a tuple of Dr.Jit values). Returns (si, sub, carry)
-    where the walk stopped. ``sampler`` is named here so that its state is loop state."""
+    where the walk stopped. ``sampler``'s state is loop state. The loop is recorded once
+    (loops.while_once)."""
     mode = tracer.mode
-    while dr.hint(tracer.go_on(sub, carry), label=tracer.label):
+
+    def step(objects, state):
+        si, ray, sub, carry = state
         v = tracer.vertex(si, ray)
         sub, carry, merge_here = tracer.at_vertex(v, ray, sub, carry)
         ray, si, sub, dist2, was_delta, scattered = advance(ctx, mis, mode, sampler, v, sub, merge_here)
         if scattered is not None and tracer.segments:
             carry = tracer.segment(v, ray, si, scattered, carry, was_delta)
         carry = tracer.after_step(ray, si, v, sub, carry, was_delta)
-        sub = arrive(mis, mode, sub, si, ray, dist2)
+        return objects, (si, ray, arrive(mis, mode, sub, si, ray, dist2), carry)
+
+    def going(objects, state):
+        return tracer.go_on(state[2], state[3])
+
+    _, (si, _, sub, carry) = while_once(tracer.label, (sampler,), (si, ray, sub, carry), going, step,
+                                        enabled=not ctx.ad)
     return si, sub, carry

@@ -177,9 +177,10 @@ def test_one_bsdf_call_for_the_evaluation_and_the_scatter(technique, monkeypatch
     """vertex.Vertex.eval_and_draw: a vertex's emitter-sampling evaluation (camera side) or its
     splat's (light side) and its scatter's BSDF sample come from one BSDF call, the scatter's
     samples drawn in the order the scatter draws them. With the same seed the image equals the
-    one rendered with two calls up to rounding (the calls are compiled apart): every pixel within
-    1e-3 of the mean, 99% of them within 1e-5. At max_depth 3 the light subpath's vertices at
-    depth 2 are splatted but do not scatter: the call must serve both sets of lanes."""
+    one rendered with two calls up to rounding (the calls are compiled apart, and the light
+    image's atomic sums add in any order): every pixel within 1e-3 of the mean, 99% of them
+    within 1e-4 (with 1e-5, lt failed 1 run in 3). At max_depth 3 the light subpath's vertices
+    at depth 2 are splatted but do not scatter: the call must serve both sets of lanes."""
     scene = mi.load_dict(_shapes_scene())          # no constant-diffuse table: Mitsuba's calls
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'technique': technique})
     assert integ.make_context(scene, scene.sensors()[0]).fuse_draw
@@ -189,4 +190,4 @@ def test_one_bsdf_call_for_the_evaluation_and_the_scatter(technique, monkeypatch
     b = np.array(mi.render(scene, integrator=integ, spp=16, seed=7))
     assert np.isfinite(a).all()
     dev = np.abs(a - b).max(axis=-1) / b.mean()
-    assert dev.max() < 1e-3 and np.mean(dev < 1e-5) > 0.99, (technique, dev.max(), np.mean(dev < 1e-5))
+    assert dev.max() < 1e-3 and np.mean(dev < 1e-4) > 0.99, (technique, dev.max(), np.mean(dev < 1e-4))
