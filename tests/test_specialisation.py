@@ -191,3 +191,28 @@ def test_one_bsdf_call_for_the_evaluation_and_the_scatter(technique, monkeypatch
     assert np.isfinite(a).all()
     dev = np.abs(a - b).max(axis=-1) / b.mean()
     assert dev.max() < 1e-3 and np.mean(dev < 1e-4) > 0.99, (technique, dev.max(), np.mean(dev < 1e-4))
+
+
+@pytest.mark.parametrize('name,technique', [('all-lights.xml', 'pt'), ('all-lights.xml', 'bdpt'),
+                                            ('media/fog.xml', 'bdpt')])
+def test_sparse_strategies_in_branches(name, technique, monkeypatch):
+    """camera_path.where: s=0 at emitters hit and at the environment are computed in a symbolic
+    branch that packets without such a lane skip. With the same seed the image and every
+    strategy layer (whose splats are side effects inside the branch) equal those computed in
+    every lane, to rounding."""
+    import bdpt_jit.camera_path as camera_path
+    from helpers import scene_path
+    scene = mi.load_file(scene_path(name), res=16, max_depth=4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'strategy_images': True})
+    out = {}
+    for sparse in (True, False):
+        monkeypatch.setattr(camera_path, 'SPARSE_IF', sparse)
+        img = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
+        out[sparse] = img, {k: {kind: np.array(v) for kind, v in d.items()} for k, d in integ.strategy_images.items()}
+    scale = out[False][0].max()
+    np.testing.assert_allclose(out[True][0], out[False][0], rtol=1e-5, atol=1e-6 * scale)
+    assert out[True][1].keys() == out[False][1].keys()
+    assert any(k.startswith('s0_') and out[True][1][k]['weighted'].max() > 0 for k in out[True][1]), list(out[True][1])
+    for k, layers in out[True][1].items():
+        for kind, layer in layers.items():
+            np.testing.assert_allclose(layer, out[False][1][k][kind], rtol=1e-5, atol=1e-6 * scale, err_msg=k)
