@@ -129,26 +129,34 @@ def equal_time_auto(scene, integ, budget, batch_spp, seed0=0):
     return acc / spp, spp, time.perf_counter() - t0, choice['chosen']
 
 
-def measure(args, name, ref):
+def prepare(args, name):
+    """A contestant: its scene and integrator, warmed up (the first render compiles its kernels)."""
     scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth), args.define)
     t0 = time.perf_counter()
     dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
-    warm = time.perf_counter() - t0
-    rels, spps, sps, chosen = [], [], [], []
-    for r in range(args.repeats):               # seeds of their own: 1000 r + batch
-        if name == 'auto':
-            img, spp, secs, c = equal_time_auto(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
-            chosen.append(c)
-        else:
-            img, spp, secs = equal_time(scene, integ, args.budget, args.batch_spp, seed0=1000 * r)
-        rels.append(relmse(img, ref))
-        spps.append(spp)
-        sps.append(spp * args.res * args.res / secs)
-    info = getattr(integ, 'last_render_info', {}).get('light_cache', {})
-    if chosen:
-        info = {'chose': ' / '.join(chosen)}
-    return dict(name=name, warm=warm, spp=int(np.median(spps)), sps=float(np.median(sps)),
-                relmse=float(np.median(rels)), rels=rels, info=info)
+    return dict(name=name, scene=scene, integ=integ, warm=time.perf_counter() - t0,
+                rels=[], spps=[], sps=[], chosen=[])
+
+
+def run_once(args, c, r, ref):
+    """Equal-time run ``r`` of contestant ``c`` (seeds of its own: 1000 r + batch)."""
+    if c['name'] == 'auto':
+        img, spp, secs, chosen = equal_time_auto(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=1000 * r)
+        c['chosen'].append(chosen)
+    else:
+        img, spp, secs = equal_time(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=1000 * r)
+    c['rels'].append(relmse(img, ref))
+    c['spps'].append(spp)
+    c['sps'].append(spp * args.res * args.res / secs)
+
+
+def summary(c):
+    """A contestant's row: medians over its runs."""
+    info = getattr(c['integ'], 'last_render_info', {}).get('light_cache', {})
+    if c['chosen']:
+        info = {'chose': ' / '.join(c['chosen'])}
+    return dict(name=c['name'], warm=c['warm'], spp=int(np.median(c['spps'])), sps=float(np.median(c['sps'])),
+                relmse=float(np.median(c['rels'])), rels=c['rels'], info=info)
 
 
 def main():
@@ -159,7 +167,7 @@ def main():
     ap.add_argument('--budget', type=float, default=8.0, help='seconds per contestant')
     ap.add_argument('--batch-spp', type=int, default=4)
     ap.add_argument('--repeats', type=int, default=1,
-                    help='equal-time runs per contestant (seeds of their own); the median is reported')
+                    help='equal-time runs per contestant (seeds of their own, the contestants in turn); the median is reported')
     ap.add_argument('--ref-spp', type=int, default=4096)
     ap.add_argument('--ref-integrator', default='path',
                     help='configuration of the reference (classic where path cannot converge)')
@@ -176,7 +184,13 @@ def main():
     print(f'# {args.scene} {args.res}x{args.res} max_depth {args.max_depth}, reference {args.ref_integrator} {args.ref_spp} spp '
           f'({time.perf_counter() - t0:.0f} s; its own relMSE {ref_err:.3g}), budget {args.budget} s, {mi.variant()}, '
           f'{os.cpu_count()} cores')
-    rows = [measure(args, name, ref) for name in args.configs.split(',')]
+    # the contestants' runs interleaved (run r of each in turn): the machine's slow spells fall
+    # on all of them alike rather than on whichever ran then
+    contestants = [prepare(args, name) for name in args.configs.split(',')]
+    for r in range(args.repeats):
+        for c in contestants:
+            run_once(args, c, r, ref)
+    rows = [summary(c) for c in contestants]
     base = next((r for r in rows if r['name'] == 'path'), rows[0])
     print('| configuration | M samples/s | /path | spp in budget | relMSE (median) | relMSE / path | '
           "less the reference's | / path's | runs | warm-up s | cache |")
