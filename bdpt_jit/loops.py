@@ -52,56 +52,57 @@ def leaves(x, path=(), out=None):
     """[(path, array)] of each one-dimensional Dr.Jit array in ``x`` (tuples, DRJIT_STRUCTs,
     and arrays of arrays such as a Vector3f), depth first; other values are not leaves."""
     out = [] if out is None else out
-    kind = _kind(type(x))
-    if kind is tuple:
+    kind, arg = _kind(type(x))
+    if kind == 'leaf':
+        out.append((path, x))
+    elif kind == 'tuple':
         for i, y in enumerate(x):
             leaves(y, path + (i,), out)
-    elif kind is not None:
-        if kind == ():              # a one-dimensional array
-            out.append((path, x))
-        elif kind[0] == 'array':
-            for i in range(kind[1]):
-                leaves(x[i], path + (i,), out)
-        else:
-            for k in kind:
-                leaves(getattr(x, k), path + (k,), out)
+    elif kind == 'array':
+        for i in range(arg):
+            leaves(x[i], path + (i,), out)
+    elif kind == 'struct':
+        for k in arg:
+            leaves(getattr(x, k), path + (k,), out)
     return out
 
 
 def assemble(x, value_at, path=()):
     """A copy of ``x`` (as ``leaves`` walks it) whose leaf at each path p is value_at(p, leaf)."""
-    kind = _kind(type(x))
-    if kind is None:
-        return x
-    if kind is tuple:
-        return tuple(assemble(y, value_at, path + (i,)) for i, y in enumerate(x))
-    if kind == ():
+    kind, arg = _kind(type(x))
+    if kind == 'leaf':
         return value_at(path, x)
-    if kind[0] == 'array':
-        return type(x)(*(assemble(x[i], value_at, path + (i,)) for i in range(kind[1])))
-    # a struct: Mitsuba's copy by their constructor, the project's by copy.copy
-    y = type(x)(x) if type(x).__module__.startswith('mitsuba') else copy.copy(x)
-    for k in kind:
-        setattr(y, k, assemble(getattr(x, k), value_at, path + (k,)))
-    return y
+    if kind == 'tuple':
+        return tuple(assemble(y, value_at, path + (i,)) for i, y in enumerate(x))
+    if kind == 'array':
+        return type(x)(*(assemble(x[i], value_at, path + (i,)) for i in range(arg)))
+    if kind == 'struct':    # Mitsuba's structs copy by their constructor, the project's by copy.copy
+        y = type(x)(x) if type(x).__module__.startswith('mitsuba') else copy.copy(x)
+        for k in arg:
+            setattr(y, k, assemble(getattr(x, k), value_at, path + (k,)))
+        return y
+    return x
 
 
 _KINDS = {}
 
 
 def _kind(t):
-    """How ``leaves`` walks a value of type ``t``: tuple; () a leaf; ('array', n) an array of n
-    arrays; the field names of a DRJIT_STRUCT; None not at all."""
+    """How ``leaves`` walks a value of type ``t``: ('leaf', None) a one-dimensional Dr.Jit array;
+    ('tuple', None); ('array', n) an array of n arrays; ('struct', field names) a DRJIT_STRUCT;
+    (None, None) not at all."""
     if t not in _KINDS:
-        if issubclass(t, tuple):
-            k = tuple
+        k = (None, None)
+        if t is tuple:          # (not a named tuple: Dr.Jit's loops do not traverse those either)
+            k = ('tuple', None)
         elif hasattr(t, 'DRJIT_STRUCT'):
-            k = tuple(t.DRJIT_STRUCT)
+            k = ('struct', tuple(t.DRJIT_STRUCT))
         elif dr.is_jit_v(t) and not dr.is_tensor_v(t):
             n = dr.size_v(t)
-            k = () if dr.depth_v(t) == 1 else (('array', n) if n > 0 else None)
-        else:
-            k = None
+            if dr.depth_v(t) == 1:
+                k = ('leaf', None)
+            elif n > 0:
+                k = ('array', n)
         _KINDS[t] = k
     return _KINDS[t]
 

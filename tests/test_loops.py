@@ -57,6 +57,28 @@ def test_a_state_the_loop_cannot_walk_is_loop_state_whole():
     assert not any(k[0] == 'test_toy_b' for k in loops._CONSTANT)
 
 
+def test_structs_keep_their_types():
+    """The body gets the state's own types back (a Mitsuba struct, its Point3f), with a
+    constant struct field (a literal direction) kept out of the loop state."""
+    n = 4
+    ray = dr.zeros(mi.Ray3f, n)
+    ray.d = mi.Vector3f(0, 0, 1)
+
+    def body(objects, s):
+        r, count = s
+        assert isinstance(r, mi.Ray3f) and isinstance(r.o, mi.Point3f)
+        r = mi.Ray3f(r)
+        r.o = r.o + r.d
+        return objects, (r, count + 1)
+
+    for _ in range(2):                      # the second with the constants learnt
+        _, (r, count) = loops.while_once('test_toy_c', (), (ray, dr.zeros(mi.UInt32, n)), lambda o, s: s[1] < 3, body)
+        dr.eval(r.o, count)
+        assert np.all(r.o.z.numpy() == 3) and np.all(r.o.x.numpy() == 0) and np.all(count.numpy() == 3)
+    key = next(k for k in loops._CONSTANT if k[0] == 'test_toy_c')
+    assert (0, 'd', 2) in loops._CONSTANT[key] and (0, 'o', 2) not in loops._CONSTANT[key]
+
+
 def count_bodies():
     """Patch dr.while_loop to count the body recordings per loop label: (the counts, undo)."""
     orig, counts = dr.while_loop, {}
