@@ -344,16 +344,17 @@ class MomentFilm:
         M = spp * a[:, 1:1 + K].T.astype(np.float64)
         missed = a[:, 1 + K:1 + 2 * K].sum(axis=0, dtype=np.float64) / max(float(np.sum(np.abs(image))), 1e-30)
         halves = a[:, 1 + 2 * K:-1].reshape(-1, K, 2, L)
-        V = np.empty_like(M)
         P = self.pixels.count           # the crop's pixels: light subpaths a one-sample image traces
-        for k, (n_c, n_lt, _) in enumerate(self.counts):
-            # a strategy's samples in a one-sample pixel estimate: the camera sample's (count 1 or
-            # n_c), and light tracing's P n_lt light subpaths, each of which may reach the pixel
-            n = np.array([(1.0, n_c, P * n_lt)[f] if f >= 0 else np.inf for f in self.families])
-            sq = 4.0 * halves[:, k, 0, :].astype(np.float64) * halves[:, k, 1, :]     # (2 I_a)(2 I_b): I_t^2
-            sq = np.where(n > 0, sq / np.where(n > 0, n, 1.0), 0.0)
-            V[k] = M[k] - sq.sum(axis=1)
-        return image, V, missed
+        # a strategy's samples in a one-sample pixel estimate: the camera sample's (count 1 or
+        # n_c), and light tracing's P n_lt light subpaths, each of which may reach the pixel; the
+        # 'other' layer's (and a count of 0's) squares are kept: 1 / n = 0
+        n = np.array([[(1.0, n_c, P * n_lt)[f] if f >= 0 else np.inf for f in self.families]
+                      for n_c, n_lt, _ in self.counts])
+        inv_n = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 0.0)
+        # (2 I_a)(2 I_b) = I_t^2 of each strategy, over its samples, summed: all candidates at once
+        # (a loop over them took 0.12 s of a 0.37 s pilot on the Cornell box at 128 x 128)
+        sq = np.einsum('pkl,kl->kp', halves[:, :, 0, :].astype(np.float64) * halves[:, :, 1, :], 4.0 * inv_n)
+        return image, M - sq, missed
 
 
 def family_record(record):
