@@ -25,7 +25,8 @@ SIGGRAPH 2022) and each candidate's measured time.
    only adds time, and comes in bursts: under a second test worker, single timings of pt's on a
    96 x 96 image ranged over 0.6-2.3 ms a sample per pixel, and a cache was chosen over it.
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
-   pixel), the efficiency 1 / (v t), the best candidate of those that miss less than MAX_MISSED
+   pixel; I from the pilots' and the trials' images, filtered, weighted against their noise:
+   ``denominator``), the efficiency 1 / (v t), the best candidate of those that miss less than MAX_MISSED
    of the image. No candidate's t is less than pt's: each runs pt's strategies and more, so a
    lower time is the trials' noise. A near tie goes to pt: another candidate must be PREFER_PT
    times as efficient (in the open, a cache of few light subpaths predicts pt's variance to a
@@ -87,9 +88,11 @@ class Trial:
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.timings = 0                # how many: its seconds are their minimum (a second job's load only adds)
         self.second = None              # the second least of its timings (``settled``)
-        self.rel_var = None             # v: predicted relative MSE at one sample per pixel (the pilots' mean)
+        self.rel_var = None             # v: predicted relative MSE at one sample per pixel (``normalise``)
         self.missed = None              # the share of the image none of its strategies samples (likewise)
-        self.pilot_vars = []            # v from each pilot of the render (pilot)
+        self.pixel_V = None             # per pixel, the pilots' mean of V, the one-sample variance (pilot)
+        self.pilot_image = None         # and of their image (``denominator`` where no trial has rendered)
+        self.own_var = None             # v over the pilots' own image (``denominator``'s weights)
         self.pilot_missed = []          # the missed share from each
         self.efficiency = None          # 1 / (v t); 0 where it misses light
         self.pixel_var = None           # v per crop pixel, h x w (the pilots' mean), or per kept pixel of a lattice
@@ -98,11 +101,16 @@ class Trial:
         self.pixel_counts = None        # and its pixel_counts.PixelCounts
         self.pick = None                # and per pixel the index of its cache in parts
         self.merge_share = None         # per crop pixel, the share of the pilots' image that merges carried
+        self.renders = 0                # its trial renders, the untimed first one included (``trial_seed``)
+        self.image_sum = None           # their images summed (the mean of the colour channels at the
+        #                                 pilots' film's pixels: ``add_image``)
+        self.images = 0                 # how many
+        self.image_spp = 0              # their samples per pixel (trial_spp)
 
     def report(self):
         out = {'name': self.name, 'settings': self.settings, 'counts': self.counts,
                'seconds_per_spp': self.seconds, 'timed': self.timed, 'timings': self.timings, 'relmse_1spp': self.rel_var,
-               'missed': self.missed, 'efficiency': self.efficiency}
+               'relmse_1spp_over_pilot_image': self.own_var, 'missed': self.missed, 'efficiency': self.efficiency}
         if self.pixel_counts is not None:
             out['pixel_counts'] = {'connections': self.pixel_counts.connections.tolist(),
                                    'merges': None if self.pixel_counts.merges is None
@@ -197,16 +205,94 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
     key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
+
+    def render():
+        trial.renders += 1
+        add_image(trial, integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp), spp)
     if key not in _WARM:
         _WARM.add(key)
-        warm_up(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))
-    t = kernel_seconds(lambda: integ.render(scene, sensor, seed=seed + TRIAL_SEED + 1, spp=spp))
+        warm_up(render)
+    t = kernel_seconds(render)
     t = max(t, 1e-9) / spp
     if trial.timed:
         trial.second = min(max(trial.seconds, t), trial.second or np.inf)
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
     trial.timed = True
     trial.timings += 1
+
+
+def trial_seed(seed, k):
+    """The seed of a trial's render ``k`` (0, 1, ...: the untimed first one included): odd offsets
+    over TRIAL_SEED, where the pilots' are even (``pilot``), so that each render's image is
+    independent of the pilots' samples and of the trial's other renders (``denominator``)."""
+    return seed + TRIAL_SEED + 2 * k + 1
+
+
+def add_image(trial, image, spp):
+    """Adds the image of one of ``trial``'s renders (``spp`` samples per pixel) to its sum: the
+    mean of its colour channels at the pixels the pilots' film keeps (``trial.lattice``). Not in
+    spectral variants, whose pilots' image is the mean over each sample's wavelengths, not the
+    film's RGB; nor before a pilot."""
+    if mi.is_spectral or image is None or trial.pilot_image is None:
+        return
+    a = np.asarray(image, dtype=np.float64)
+    a = a.reshape(-1, a.shape[-1])[:, :1 if mi.is_monochromatic else 3].mean(axis=1)
+    if trial.lattice is not None:
+        a = a[::trial.lattice[2]]
+    if a.size != trial.pilot_image.size or (trial.images and trial.image_spp != spp):
+        return
+    trial.image_sum = a if trial.image_sum is None else trial.image_sum + a
+    trial.images += 1
+    trial.image_spp = spp
+
+
+def denominator(trials, rounds=3):
+    """Per pixel (the pilots' film's), I^2 + DENOM of the relative MSE, with I the mean over each
+    pixel's 3 x 3 neighbourhood (``box3``) of the pilots' image and the trial renders' images,
+    weighted by the inverse of each one's variance (samples per pixel over v; the pilots' image's
+    v that of the classic estimator, the pilots' own configuration): the weights from the v over
+    the pilots' own image first, then ``rounds`` times from the v over this mean. No weight
+    depends on these images (each v is the pilots'), so the mean is unbiased. Not the pilots'
+    image alone: a pixel's rare bright pilot sample raised both its V and its I, so that
+    heavy-tailed candidates' v came out low (on the caustic, over the pilots' image, the caches
+    and bdpt 0.12-0.16 against 0.47-0.57 over a 512-spp reference, the merging ones 0.08-0.12
+    against 0.12-0.19: auto chose caches that rendered 2.7 times vcm's error); over nine pixels
+    and more samples such a sample is a small part of I. Nor a pixel's samples alone: where it
+    partly covers a small bright emitter (veach-mis' lights), a few samples' I is often near 0
+    and that pixel's V / I^2 decided every candidate's v; nor the images of a heavy-tailed
+    candidate in full, mostly too low (hence the weights)."""
+    first = next(tr for tr in trials if tr.pilot_image is not None)
+    merging = any(tr.merges and not tr.behind_delta for tr in trials)       # the pilot was vcm's
+    pilot = next((tr for tr in trials if tr.name == ('vcm' if merging else 'bdpt')), first)
+    timed = [tr for tr in trials if tr.images]
+    v = {id(tr): tr.own_var for tr in trials}
+    for _ in range(rounds + 1):
+        w = PILOT_SPP * len(first.pilot_missed) / positive(v[id(pilot)])
+        num, w_sum = w * first.pilot_image, w
+        for tr in timed:
+            w = tr.image_spp / positive(v[id(tr)])
+            num, w_sum = num + w * tr.image_sum, w_sum + w * tr.images
+        image = num / w_sum
+        image = box3(image.reshape(first.pixel_V.shape)) if first.lattice is None else box3_lattice(image, *first.lattice)
+        den = image.reshape(-1) ** 2 + DENOM
+        v = {id(tr): float(np.mean(tr.pixel_V.reshape(-1) / den)) for tr in trials}
+    return den
+
+
+def positive(x):
+    """``x`` where it is a positive finite number, else 1."""
+    return x if x is not None and np.isfinite(x) and x > 0 else 1.0
+
+
+def normalise(trials):
+    """Each trial's v (rel_var) and v per pixel (pixel_var) from its pilots' V, over ``denominator``."""
+    pilots = [tr for tr in trials if tr.pixel_V is not None]
+    if not pilots:
+        return
+    den = denominator(pilots)
+    for tr in pilots:
+        tr.pixel_var = tr.pixel_V / den.reshape(tr.pixel_V.shape)
+        tr.rel_var = float(np.mean(tr.pixel_var))
 
 
 def cost_model(trials):
@@ -245,6 +331,7 @@ def pilot(make, trials, scene, sensor, seed, index=0):
                                 ([tr for tr in trials if tr.behind_delta], True)):
         if group:
             pilot_group(make, group, behind_delta, scene, sensor, seed + TRIAL_SEED + 2 * index)
+    normalise(trials)
 
 
 def pilot_group(make, trials, behind_delta, scene, sensor, seed):
@@ -259,20 +346,18 @@ def pilot_group(make, trials, behind_delta, scene, sensor, seed):
     integ.render(scene, sensor, seed=seed, spp=PILOT_SPP)
     film = integ.moment_film
     image, V, missed = film.estimates(PILOT_SPP)
-    denom = image ** 2 + DENOM
     share = film.merged / np.maximum(np.abs(image), 1e-30)      # the merges' part of each pixel
     for k, tr in enumerate(trials):
-        rel = np.maximum(V[k], 0.0) / denom
-        tr.pilot_vars.append(float(np.mean(rel)))
         tr.pilot_missed.append(float(missed[k]))
-        tr.rel_var = float(np.mean(tr.pilot_vars))
         tr.missed = float(np.mean(tr.pilot_missed))
-        # per pixel, the pilots' mean too: an h x w image, or a large crop's kept pixels (moments.MAX_PIXELS)
+        # per pixel, the pilots' mean: an h x w image, or a large crop's kept pixels (moments.MAX_PIXELS)
         shape = (film.pixels.h, film.pixels.w) if film.step == 1 else (film.count,)
         tr.lattice = None if film.step == 1 else (film.pixels.h, film.pixels.w, film.step)
-        rel, s, n = rel.reshape(shape), share.reshape(shape), len(tr.pilot_vars)
-        tr.pixel_var = rel if tr.pixel_var is None else tr.pixel_var + (rel - tr.pixel_var) / n
+        v, s, n = np.maximum(V[k], 0.0).reshape(shape), share.reshape(shape), len(tr.pilot_missed)
+        tr.pixel_V = v if tr.pixel_V is None else tr.pixel_V + (v - tr.pixel_V) / n
         tr.merge_share = s if tr.merge_share is None else tr.merge_share + (s - tr.merge_share) / n
+        tr.pilot_image = image if tr.pilot_image is None else tr.pilot_image + (image - tr.pilot_image) / n
+        tr.own_var = float(np.mean(tr.pixel_V.reshape(-1) / (tr.pilot_image ** 2 + DENOM)))
 
 
 def choose(make, ctx, scene, sensor, seed, vpp):
@@ -283,6 +368,7 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
         if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
             time_trial(make, tr, scene, sensor, seed, spp)
+    normalise(trials)               # over the trials' images (``denominator``)
     cost_model(trials)
     trials += per_pixel_trials(trials)
     return decide(make, trials, scene, sensor, seed, spp), trials

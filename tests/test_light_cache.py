@@ -700,6 +700,42 @@ def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
 
 
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_auto_predicts_a_heavy_tailed_candidate_s_variance_over_an_independent_image(seed):
+    """auto.normalise / denominator: the relMSE's I^2 not from the pilots' own image. Synthetic
+    pilots: the classic estimator (the pilot's own) is heavy-tailed, a sample 1/p times its
+    pixel's value with probability p = 0.05 (one-sample relative variance (1 - p) / p = 19), a
+    cache light-tailed (1); V is each one's sample variance over the pilot's 4 samples, as the
+    moment film's, so the classic's V is large exactly where the pilot's image is. Each has two
+    trial renders of 2 spp. Over the pilots' own image the classic's v comes out at ~0.04 of
+    the truth (a rare sample divides its own square); over the weighted, 3 x 3 filtered mean of
+    all the images within 0.8-1.4 of it, and the cache's within 0.9-1.4 (the I of 36 samples a
+    pixel: E[1 / I^2] a little above 1 / R^2). Planted: the denominator from the pilots' image
+    alone, or the trials' images with equal weights (the classic's, mostly 0, make I low: v 16-23
+    times the truth), fails."""
+    from bdpt_jit import auto
+    rng = np.random.default_rng(seed)
+    h = w = 64
+    R = np.exp(rng.normal(0.0, 0.3, h * w))
+    p = 0.05
+    heavy = lambda n: R[:, None] * (rng.random((h * w, n)) < p) / p       # noqa: E731
+    light = lambda n: R[:, None] * (1.0 + rng.normal(size=(h * w, n)))     # noqa: E731
+    Y = heavy(auto.PILOT_SPP)
+    trials = [auto.Trial('bdpt', {}, (1.0, 1.0, 0.0)), auto.Trial('cache 1x4', {}, (4.0, 1.0, 0.0), (1.0, 4))]
+    for tr, V in zip(trials, (Y.var(axis=1, ddof=1), light(auto.PILOT_SPP).var(axis=1, ddof=1))):
+        tr.pixel_V, tr.pilot_image, tr.pilot_missed = V.reshape(h, w), Y.mean(axis=1), [0.0]
+        tr.own_var = float(np.mean(V / (tr.pilot_image ** 2 + auto.DENOM)))
+    for tr, sample in zip(trials, (heavy, light)):
+        for _ in range(2):
+            auto.add_image(tr, np.repeat(sample(2).mean(axis=1).reshape(h, w, 1), 3, axis=2), 2)
+    auto.normalise(trials)
+    rel = R ** 2 / (R ** 2 + auto.DENOM)
+    truth = np.mean((1 - p) / p * rel), np.mean(rel)
+    assert trials[0].own_var < 0.1 * truth[0]
+    assert 0.8 < trials[0].rel_var / truth[0] < 1.4 and 0.9 < trials[1].rel_var / truth[1] < 1.4
+    assert trials[0].pixel_var.shape == (h, w) and np.mean(trials[0].pixel_var) == pytest.approx(trials[0].rel_var)
+
+
 def _sky_only(width, height):
     """A sensor under a constant sky and nothing else."""
     return {'type': 'scene', 'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': 0.5}},
