@@ -6,6 +6,7 @@ distribution, and works for light-image splats, which cross pixels."""
 
 import fcntl
 import hashlib
+import re
 import os
 
 import drjit as dr
@@ -18,6 +19,7 @@ from bdpt_jit.jit_guard import collector_paused
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(REPO, 'scenes')
 CACHE = os.path.join(REPO, 'tests', '.refcache')
+STORE = os.path.join(REPO, 'tests', 'references')      # committed: see tests/references/README.md
 
 
 def assert_finite(img, what='image'):
@@ -45,24 +47,66 @@ def render_batches(scene, integrator, spp, batches, seed0=0):
 
 
 def cached_reference(key_parts, make):
-    """Reference renders are cached under tests/.refcache (ignored by git), keyed by what
-    made them and the Mitsuba version; a clean checkout (CI) renders them afresh."""
+    """A reference render: from tests/references (committed, float32, see its README) where it
+    holds one, else from tests/.refcache (ignored by git), else ``make()`` (cached there), keyed
+    by what made it (``key_parts``: scene_fingerprint where a scene is rendered) and the Mitsuba
+    version. With BDPT_STORE_REFERENCES set, every reference a test uses is written to
+    tests/references too."""
     key = hashlib.sha1(repr((mi.__version__,) + tuple(key_parts)).encode()).hexdigest()[:16]
+    stored = os.path.join(STORE, key + '.npz')
+    if os.path.exists(stored):
+        with np.load(stored) as f:
+            return f['batches'].astype(np.float64)
     path = os.path.join(CACHE, key + '.npy')
     if os.path.exists(path):
-        return np.load(path)
+        return store_reference(stored, np.load(path))
     os.makedirs(CACHE, exist_ok=True)
     # pytest-xdist workers (scripts/test.sh with BDPT_TEST_WORKERS) that need the same reference
     # wait for the one rendering it instead of rendering it again
     with open(path + '.lock', 'w') as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if os.path.exists(path):
-            return np.load(path)
+            return store_reference(stored, np.load(path))
         arr = make()
         tmp = path + f'.{os.getpid()}.tmp.npy'
         np.save(tmp, arr)
         os.replace(tmp, path)
+    return store_reference(stored, arr)
+
+
+def store_reference(path, arr):
+    """``arr``, written to the committed store at ``path`` first where BDPT_STORE_REFERENCES is
+    set: as float32, which holds it exactly (renders are float32; render_batches widens them)."""
+    if os.environ.get('BDPT_STORE_REFERENCES') and not os.path.exists(path):
+        narrow = arr.astype(np.float32)
+        assert np.array_equal(narrow.astype(np.float64), arr), 'a reference that float32 does not hold'
+        os.makedirs(STORE, exist_ok=True)
+        tmp = path + f'.{os.getpid()}.tmp.npz'
+        np.savez_compressed(tmp, batches=narrow)
+        os.replace(tmp, path)
     return arr
+
+
+def scene_fingerprint(scene):
+    """A digest of what ``scene`` (a loaded mi.Scene) renders: its description (str: every
+    object, its type and settings) and the value of each of its parameters (mi.traverse: meshes,
+    textures, transforms), both independent of the order Mitsuba lists them in and of addresses. Part of a reference's key, so that an edited scene never meets a
+    stored reference of its old form."""
+    params = mi.traverse(scene)
+    entries = []
+    for name in params.keys():
+        if name.endswith('vertex_normals'):     # computed from the positions and faces, in any order
+            continue
+        value = params[name]
+        try:
+            data = np.asarray(value, dtype=np.float64).tobytes()
+        except (TypeError, ValueError, RuntimeError):
+            data = repr(value).encode()
+        # unnamed objects are named by their address ('object_140377449984736.position')
+        entries.append((re.sub(r'object_\d+', 'object', name), hashlib.sha1(data).hexdigest()))
+    # (the description's lines as a multiset: Mitsuba lists a scene's children in no fixed order)
+    lines = sorted(line.strip() for line in str(scene).splitlines())
+    return hashlib.sha1(repr((lines, sorted(entries))).encode()).hexdigest()[:16]
 
 
 def cornell_scene(*args, **kwargs):
@@ -78,13 +122,13 @@ def load_scene(name, res, max_depth):
 
 
 def reference(scene_key, load, integrator, spp, batches, seed0):
-    """Reference batches (render_batches), cached under tests/.refcache (cached_reference):
-    ``integrator`` (a dict) on the scene ``load()`` in ``batches`` batches of ``spp`` samples,
-    seeds from ``seed0``. ``scene_key`` names the scene and what built it; the integrator's
-    parameters, spp, batches and seed0 complete the cache key. The scene is loaded only when
-    the reference is not cached."""
-    key = (scene_key, tuple(sorted(integrator.items())), spp, batches, seed0)
-    return cached_reference(key, lambda: render_batches(load(), integrator, spp, batches, seed0=seed0))
+    """Reference batches (render_batches), cached (cached_reference): ``integrator`` (a dict) on
+    the scene ``load()`` in ``batches`` batches of ``spp`` samples, seeds from ``seed0``.
+    ``scene_key`` names the scene, scene_fingerprint tells its content; the integrator's
+    parameters, spp, batches and seed0 complete the key."""
+    scene = load()
+    key = (scene_key, scene_fingerprint(scene), tuple(sorted(integrator.items())), spp, batches, seed0)
+    return cached_reference(key, lambda: render_batches(scene, integrator, spp, batches, seed0=seed0))
 
 
 def file_reference(name, res, max_depth, which, spp, batches, seed0, **params):

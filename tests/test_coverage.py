@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from bdpt_jit.scene_check import UnsupportedSceneError, check_scene
-from helpers import REPO, agreement, cached_reference, render_batches
+from helpers import REPO, agreement, cached_reference, render_batches, scene_fingerprint
 from stability_cases import cornell, diffuse, film, rgb
 
 T = mi.ScalarTransform4f
@@ -36,8 +36,9 @@ REF_SEED = 50_000           # first seed of this file's reference batches
 
 def reference(name, build, integrator, spp, batches=BATCHES, seed0=REF_SEED):
     """Reference batches of Mitsuba's ``integrator`` (a dict) on the scene ``build()``, cached."""
-    key = ('coverage', name, tuple(sorted(integrator.items())), spp, batches, seed0)
-    return cached_reference(key, lambda: render_batches(mi.load_dict(build()), integrator, spp, batches, seed0=seed0))
+    scene = mi.load_dict(build())
+    key = ('coverage', name, scene_fingerprint(scene), tuple(sorted(integrator.items())), spp, batches, seed0)
+    return cached_reference(key, lambda: render_batches(scene, integrator, spp, batches, seed0=seed0))
 
 
 def check(name, build, ref_integrator, ref_spp, integrator, spp):

@@ -39,7 +39,7 @@ import numpy as np
 import pytest
 
 import stability_cases as sc
-from helpers import assert_finite, cached_reference, no_delta_mask, render_batches
+from helpers import assert_finite, cached_reference, no_delta_mask, render_batches, scene_fingerprint
 from stability_cases import agree
 
 BATCHES = 16
@@ -80,8 +80,9 @@ def assert_valid(img, what):
 
 def reference(key, scene_fn, integ, spp=REF_SPP, seed0=50_000):
     """Reference batches (K, H, W, 3), cached under tests/.refcache by ``key``."""
-    return cached_reference((TAG, key, repr(integ), spp, BATCHES),
-                            lambda: render_batches(load(scene_fn()), integ, spp, BATCHES, seed0=seed0))
+    scene = load(scene_fn())
+    return cached_reference((TAG, key, scene_fingerprint(scene), repr(integ), spp, BATCHES, seed0),
+                            lambda: render_batches(scene, integ, spp, BATCHES, seed0=seed0))
 
 
 def spp_for(technique, mis):
