@@ -4,7 +4,7 @@
 # The tests run in pytest-xdist workers, one per core up to 2 (BDPT_TEST_WORKERS=N sets N; 1 runs
 # one process), each test file on one worker (--dist loadfile), so that a file's kernels are
 # compiled once: Dr.Jit compiles a kernel on one thread, and a second worker renders meanwhile.
-# Measured on 2 cores with an empty kernel cache and no references (a fresh clone): 13 min 21 s at 781fe4f, 14 min 9 s at 58b052a (with the media tests), 13 min 25 s at 1f6b9f2 (4371 tests), 17 min 4 s at 3b8289d (4683 tests; 15 min 49 s here at 8420284, whose suite the CI service ran in 690 s), 16 min 23 s at 3d15d79 (4686 tests, pytest's own 15 min 45 s), 16 min 57 s at cf85ad3 (4984 tests, pytest's 16 min 31 s), 17 min 42 s at 96dbc6a (pytest's 17 min 12 s), 16 min 26 s at 52e07fc (pytest's 15 min 59 s), 16 min 59 s at 1c3912c (pytest's 16 min 30 s)
+# Measured on 2 cores with an empty kernel cache and no tests/.refcache (a fresh clone): 13 min 21 s at 781fe4f, 14 min 9 s at 58b052a (with the media tests), 13 min 25 s at 1f6b9f2 (4371 tests), 17 min 4 s at 3b8289d (4683 tests; 15 min 49 s here at 8420284, whose suite the CI service ran in 690 s), 16 min 23 s at 3d15d79 (4686 tests, pytest's own 15 min 45 s), 16 min 57 s at cf85ad3 (4984 tests, pytest's 16 min 31 s), 17 min 42 s at 96dbc6a (pytest's 17 min 12 s), 16 min 26 s at 52e07fc (pytest's 15 min 59 s), 16 min 59 s at 1c3912c (pytest's 16 min 30 s), 16 min 42 s at da75fdc (pytest's 16 min 14 s), 13 min 43 s at 4b01e46 with the references stored in tests/references (pytest's 13 min 18 s)
 # with two workers, against 20 min 40 s in one process (docs/performance.md, sixth session).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
