@@ -6,8 +6,8 @@ distribution, and works for light-image splats, which cross pixels."""
 
 import fcntl
 import hashlib
-import re
 import os
+import re
 
 import drjit as dr
 import mitsuba as mi
@@ -90,8 +90,9 @@ def store_reference(path, arr):
 def scene_fingerprint(scene):
     """A digest of what ``scene`` (a loaded mi.Scene) renders: its description (str: every
     object, its type and settings) and the value of each of its parameters (mi.traverse: meshes,
-    textures, transforms), both independent of the order Mitsuba lists them in and of addresses. Part of a reference's key, so that an edited scene never meets a
-    stored reference of its old form."""
+    textures, transforms), both independent of the order Mitsuba lists them in and of
+    addresses. Part of a reference's key, so that an edited scene never meets a stored
+    reference of its old form."""
     params = mi.traverse(scene)
     entries = []
     for name in params.keys():
