@@ -379,28 +379,33 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
         assert c['efficiency'] == 0.0 if c['missed'] >= auto.MAX_MISSED else np.isclose(
             c['efficiency'], 1 / (c['relmse_1spp'] * max(c['seconds_per_spp'], t_pt)), rtol=1e-6)
         assert (c['counts'][2] > 0) == ('vcm' in c['name'])
-    # the cost model: linear in light_paths and connections through the three timed caches, a
-    # merging cache's its cache's plus e + g light_paths through vcm and the timed merging cache
-    # (the best by the model was timed too: the chosen one is)
+    # the cost model: linear in light_paths and connections, least squares (scipy's bounded
+    # lsq_linear here) through the timed caches, a merging cache's its cache's plus e + g
+    # light_paths through vcm's and the timed merging caches' extra times (the best by the model
+    # was timed too: the chosen one is)
     timed = {c['name']: c['seconds_per_spp'] for c in info['candidates'] if c['timed']}
     want = ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
     if merging:
         want += ['vcm', auto.BEHIND_DELTA, 'vcm cache {:g}x{}'.format(*auto.TIMED_MERGING)]
     assert set(want) <= set(timed) and best['timed']
+    from scipy.optimize import lsq_linear
     t = {c['name']: c['seconds_per_spp'] for c in info['candidates']}
-    b = max((t['cache 1x1'] - t['cache 0.25x1']) / 0.75, 0.0)
-    d = max((t['cache 1x4'] - t['cache 1x1']) / 3, 0.0)
+    caches = [c for c in info['candidates'] if 'light_paths' in c['settings'] and 'per pixel' not in c['name']]
+    plain = [c for c in caches if c['timed'] and 'vcm' not in c['name']]
+    A = np.array([[1.0, c['settings']['light_paths'], c['settings']['connections']] for c in plain])
+    a, b, d = lsq_linear(A, np.array([c['seconds_per_spp'] for c in plain]), bounds=([-np.inf, 0, 0], np.inf)).x
     e = g = 0.0
     if merging:
-        x1 = max(t['vcm'] - t['bdpt'], 0.0)
-        x0 = max(t['vcm cache 0.25x1'] - t['cache 0.25x1'], 0.0)
-        g = max((x1 - x0) / 0.75, 0.0)
-        e = max(x1 - g, 0.0)
-    for c in info['candidates']:
-        if 'light_paths' in c['settings'] and not c['timed'] and 'per pixel' not in c['name']:
+        pts = [(1.0, t['vcm'] - t['bdpt'])] + [
+            (c['settings']['light_paths'], c['seconds_per_spp'] - (a + b * c['settings']['light_paths'] + d * c['settings']['connections']))
+            for c in caches if c['timed'] and 'vcm' in c['name']]
+        if len({x for x, _ in pts}) >= 2:
+            e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf)).x
+    for c in caches:
+        if not c['timed']:
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
-            want_t = t['cache 1x1'] + b * (n_l - 1) + d * (conn - 1) + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
-            np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-6)
+            want_t = a + b * n_l + d * conn + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
+            np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-5, atol=1e-9)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     if 'pixel_counts' in best:
         from bdpt_jit.pixel_counts import PixelCounts
@@ -654,20 +659,49 @@ def test_auto_times_close_calls_again(monkeypatch):
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'cache 0.25x1' and by['cache 0.25x1'].seconds == 1.5 and by['pt'].seconds == 1.0
     assert by['pt'].timings == by['cache 0.25x1'].timings == 2
-    # a cost-model point in the close call: the cache 1 x 1's time falls 3.0 -> 1.5, so the model
-    # is b = max((1.5 - 2.5) / 0.75, 0) = 0, d = (4.0 - 1.5) / 3, a = 1.5 - d (stale: 2, 2/3, 1/3)
+    # a cost-model point in the close call: the cache 1 x 1's time falls 3.0 -> 1.5, so the least
+    # squares through (n_L, c, t) = (0.25, 1, 2.5), (1, 1, 1.5), (1, 4, 4.0) would have b = -4/3:
+    # b held at 0, a + d c through them is d = 2/3, a = 4/3 (stale: a, b, d = 2, 2/3, 1/3)
     rel = {'bdpt': 0.12, 'cache 1x1': 0.11}
     times = {'pt': [1.0], 'bdpt': [2.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0, 1.5], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'cache 1x1' and by['cache 1x1'].seconds == 1.5
     # cache 1 x 1's two timings disagree (3.0, 1.5): a third; bdpt's agree (2.0, 2.0): settled at two
     assert by['cache 1x1'].timings == auto.TIMINGS and by['bdpt'].timings == 2
-    d = 2.5 / 3.0
     for lp in auto.LIGHT_PATHS:
         for c in auto.CONNECTIONS:
             tr = by[f'cache {lp:g}x{c}']
             if not tr.timed:
-                assert np.isclose(tr.seconds, 1.5 - d + d * c), tr.name
+                assert np.isclose(tr.seconds, 4.0 / 3.0 + 2.0 / 3.0 * c), tr.name
+
+
+def test_the_cost_model_takes_every_timed_cache():
+    """auto.cost_model: a least-squares fit over every timed cache. The three first points put
+    the cache 1 x 4 below 1 x 1 (timing noise: from them alone connections cost nothing, d = 0);
+    a later timing of the cache 1/4 x 8 joins the fit, which then has d > 0 and models the cache
+    1/4 x 4 between its neighbours; the merging caches' extra time (vcm over bdpt at n_L / n = 1,
+    the merging 1/4 x 1 over its cache's t) is e + g n_L / n with e, g >= 0. Planted: the fit of
+    the three first points only, the 1/4 x 4 at 1.0, fails."""
+    from bdpt_jit import auto
+    def cache(lp, c, merges=False, t=None):
+        tr = auto.Trial(f"{'vcm ' if merges else ''}cache {lp:g}x{c}", {}, (c, lp, lp if merges else 0.0), (lp, c))
+        tr.seconds, tr.timed = t, t is not None
+        return tr
+    bdpt, vcm = auto.Trial('bdpt', {}, (1.0, 1.0, 0.0)), auto.Trial('vcm', {}, (1.0, 1.0, 1.0))
+    bdpt.seconds, bdpt.timed, vcm.seconds, vcm.timed = 2.5, True, 3.5, True
+    points = [cache(0.25, 1, t=1.0), cache(1.0, 1, t=2.0), cache(1.0, 4, t=1.9), cache(0.25, 8, t=3.1)]
+    modelled = [cache(0.25, 4), cache(1.0, 8), cache(0.25, 1, True, t=1.5), cache(1.0, 2, True)]
+    auto.cost_model(points + modelled + [bdpt, vcm])
+    A = np.array([[1.0, tr.cache[0], tr.cache[1]] for tr in points])
+    a, b, d = np.linalg.lstsq(A, np.array([tr.seconds for tr in points]), rcond=None)[0]
+    assert b > 0 and d > 0          # the unconstrained fit is feasible here
+    assert modelled[0].seconds == pytest.approx(a + 0.25 * b + 4 * d) and 1.0 < modelled[0].seconds < 3.1
+    assert modelled[1].seconds == pytest.approx(a + b + 8 * d)
+    x1, x0 = 3.5 - 2.5, 1.5 - (a + 0.25 * b + d)      # merges' extra time at n_L / n = 1 and 1/4
+    g = (x1 - x0) / 0.75
+    assert modelled[3].seconds == pytest.approx(a + b + 2 * d + (x1 - g) + g)
+    fit = auto.nonnegative_fit([(1.0, 0.0), (1.0, 1.0)], [1.0, 0.5], free=0)   # a falling line: held flat
+    assert fit == pytest.approx([0.75, 0.0])
 
 
 def test_a_trial_runs_once_untimed_first(monkeypatch):
