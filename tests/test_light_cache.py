@@ -393,14 +393,14 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     caches = [c for c in info['candidates'] if 'light_paths' in c['settings'] and 'per pixel' not in c['name']]
     plain = [c for c in caches if c['timed'] and 'vcm' not in c['name']]
     A = np.array([[1.0, c['settings']['light_paths'], c['settings']['connections']] for c in plain])
-    a, b, d = lsq_linear(A, np.array([c['seconds_per_spp'] for c in plain]), bounds=([-np.inf, 0, 0], np.inf)).x
+    a, b, d = lsq_linear(A, np.array([c['seconds_per_spp'] for c in plain]), bounds=([-np.inf, 0, 0], np.inf), method='bvls').x
     e = g = 0.0
     if merging:
         pts = [(1.0, t['vcm'] - t['bdpt'])] + [
             (c['settings']['light_paths'], c['seconds_per_spp'] - (a + b * c['settings']['light_paths'] + d * c['settings']['connections']))
             for c in caches if c['timed'] and 'vcm' in c['name']]
         if len({x for x, _ in pts}) >= 2:
-            e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf)).x
+            e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf), method='bvls').x
     for c in caches:
         if not c['timed']:
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
