@@ -16,8 +16,9 @@ SIGGRAPH 2022) and each candidate's measured time.
 2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
    pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
    t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
-   history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the three, linear in
-   the light subpaths per camera sample and in the connections per camera vertex; the best
+   history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the timed caches
+   (cost_model), linear in the light subpaths per camera sample and in the connections per
+   camera vertex; the best
    candidate by the model is timed too before it is chosen (until the best is a timed one), and
    while the runner-up's efficiency is within CLOSE of the best's, both are timed again, up to
    TIMINGS times, until a candidate's two least timings agree within SETTLED (``settled``); a
