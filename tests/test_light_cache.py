@@ -745,8 +745,7 @@ def test_auto_predicts_a_heavy_tailed_candidate_s_variance_over_an_independent_i
     the truth (a rare sample divides its own square); over the weighted, 3 x 3 filtered mean of
     all the images within 0.8-1.4 of it, and the cache's within 0.9-1.4 (the I of 36 samples a
     pixel: E[1 / I^2] a little above 1 / R^2). Planted: the denominator from the pilots' image
-    alone, or the trials' images with equal weights (the classic's, mostly 0, make I low: v 16-23
-    times the truth), fails."""
+    alone, or the trials' images with equal weights (the classic's, mostly 0, make I low), fails."""
     from bdpt_jit import auto
     rng = np.random.default_rng(seed)
     h = w = 64
