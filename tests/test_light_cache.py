@@ -724,6 +724,30 @@ def test_a_trial_runs_once_untimed_first(monkeypatch):
     assert trial.timings == 3 and trial.seconds == pytest.approx(0.004 / 4)
 
 
+def test_each_trial_render_has_a_seed_of_its_own(monkeypatch):
+    """auto.time_trial / trial_seed: a trial's renders (the untimed first one included) have
+    seeds of their own, none a pilot's (seed + TRIAL_SEED + 2 k), so that the images the
+    denominator takes are independent of each other and of the pilots' V; their images are
+    kept (channel means at the pilots' pixels). Planted: every render with one seed, fails."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, '_WARM', set())
+    monkeypatch.setattr(auto, 'kernel_seconds', lambda render: render() or 0.004)
+    seeds = []
+
+    class Render:
+        def render(self, scene, sensor, seed, spp):
+            seeds.append(seed)
+            return np.full((8, 8, 3), float(len(seeds)))
+    scene = mi.load_dict(_sky_only(8, 8))
+    trial = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    trial.pilot_image = np.zeros(64)
+    for _ in range(3):
+        auto.time_trial(lambda settings: Render(), trial, scene, scene.sensors()[0], 7, 2)
+    pilots = {7 + auto.TRIAL_SEED + 2 * k for k in range(auto.MAX_DECISIONS)}
+    assert len(seeds) == 4 and len(set(seeds)) == 4 and not set(seeds) & pilots
+    assert trial.images == 4 and trial.image_spp == 2 and np.allclose(trial.image_sum, 1 + 2 + 3 + 4)
+
+
 def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     """Where the best leads by more than auto.CLOSE, each cost-model point is timed once (and
     the best, if it is modelled, once more before it is chosen): no re-timing."""
