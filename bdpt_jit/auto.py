@@ -267,7 +267,9 @@ def denominator(trials, rounds=3):
     pilot = next((tr for tr in trials if tr.name == ('vcm' if merging else 'bdpt')), first)
     timed = [tr for tr in trials if tr.images]
     v = {id(tr): tr.own_var for tr in trials}
-    for _ in range(rounds + 1):
+    for r in range(rounds + 1):
+        if r:
+            v = {id(tr): float(np.mean(tr.pixel_V.reshape(-1) / den)) for tr in trials}
         w = PILOT_SPP * len(first.pilot_missed) / positive(v[id(pilot)])
         num, w_sum = w * first.pilot_image, w
         for tr in timed:
@@ -276,7 +278,6 @@ def denominator(trials, rounds=3):
         image = num / w_sum
         image = box3(image.reshape(first.pixel_V.shape)) if first.lattice is None else box3_lattice(image, *first.lattice)
         den = image.reshape(-1) ** 2 + DENOM
-        v = {id(tr): float(np.mean(tr.pixel_V.reshape(-1) / den)) for tr in trials}
     return den
 
 
@@ -311,12 +312,14 @@ def cost_model(trials):
         return
     a, b, d = nonnegative_fit([(1.0, lp, c) for (lp, c), _ in plain], [t for _, t in plain], free=1)
     named = {tr.name: tr.seconds for tr in trials if tr.timed}
-    extra = [((1.0, 1.0), named['vcm'] - named['bdpt'])] if 'vcm' in named and 'bdpt' in named else []
-    extra += [((1.0, lp), t - (a + b * lp + d * c)) for tr in trials if tr.timed and tr.merges and tr.cache is not None
-              for (lp, c), t in [(tr.cache, tr.seconds)]]
+    extra = [(1.0, named['vcm'] - named['bdpt'])] if 'vcm' in named and 'bdpt' in named else []
+    for tr in trials:               # (n_L/n, the merges' extra time)
+        if tr.timed and tr.merges and tr.cache is not None:
+            lp, c = tr.cache
+            extra.append((lp, tr.seconds - (a + b * lp + d * c)))
     e = g = 0.0
-    if len({x for (_, x), _ in extra}) >= 2:        # merges at two n_L/n at least
-        e, g = nonnegative_fit([x for x, _ in extra], [y for _, y in extra], free=0)
+    if len({lp for lp, _ in extra}) >= 2:           # merges at two n_L/n at least
+        e, g = nonnegative_fit([(1.0, lp) for lp, _ in extra], [x for _, x in extra], free=0)
     for tr in trials:
         if tr.cache is not None and not tr.timed:
             lp, c = tr.cache
@@ -337,7 +340,7 @@ def nonnegative_fit(rows, values, free):
             x[on] = np.linalg.lstsq(A[:, on], y, rcond=None)[0]
         if np.all(x[free:] >= 0.0):
             r = float(np.sum((A @ x - y) ** 2))
-            if r < best - 1e-15 * max(1.0, best if np.isfinite(best) else 1.0):
+            if r < best:
                 best, out = r, x
     return out
 
