@@ -366,7 +366,10 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
             lp = c['settings']['light_paths']
             m = c['pixel_counts']['merges']
             assert c['name'] == f"{'vcm ' if m is not None else ''}cache {lp:g}x per pixel" and lp in auto.LIGHT_PATHS
-            conn = np.array(c['pixel_counts']['connections'])
+            conn = c['pixel_counts']['connections']
+            # arrays, not lists: mi.render walks the integrator's attributes (last_render_info
+            # included) on every call, a list element by element (auto.Trial.report)
+            assert isinstance(conn, np.ndarray) and (m is None or isinstance(m, np.ndarray))
             assert conn.shape == (16, 16) and set(np.unique(conn)) <= set(auto.CONNECTIONS)
             assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
     # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt
