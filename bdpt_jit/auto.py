@@ -13,7 +13,9 @@ SIGGRAPH 2022) and each candidate's measured time.
    caustic from a point light, a directional area emitter). Where merging candidates are
    offered the pilot merges everywhere (vcm, merge_everywhere); a candidate merging behind
    delta vertices only (BEHIND_DELTA) has a pilot of its own merge set.
-2. The cost: path tracing, the classic estimator and three caches render TRIAL_SPP samples per
+2. The cost: first pt and the cheapest bidirectional candidate (``probe``) are timed, and where
+   no candidate could be chosen over pt even at the probe's time, pt is (``clear_pt``). Else
+   path tracing, the classic estimator and three caches render TRIAL_SPP samples per
    pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
    t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
    history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the timed caches
@@ -393,14 +395,7 @@ def choose(make, ctx, scene, sensor, seed, vpp):
     """The first decision of a render: (the chosen Trial, every Trial)."""
     trials = candidates(ctx, vpp)
     pilot(make, trials, scene, sensor, seed)
-    spp = trial_spp(sensor)
-    for tr in trials:       # the cost models' points: every one that is not a cache, and those caches
-        if tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES):
-            time_trial(make, tr, scene, sensor, seed, spp)
-    normalise(trials)               # over the trials' images (``denominator``)
-    cost_model(trials)
-    trials += per_pixel_trials(trials)
-    return decide(make, trials, scene, sensor, seed, spp), trials
+    return timed_choice(make, trials, scene, sensor, seed, trial_spp(sensor)), trials
 
 
 def rechoose(make, trials, scene, sensor, seed, index):
@@ -409,9 +404,64 @@ def rechoose(make, trials, scene, sensor, seed, index):
     model and close calls timed as in the first decision; the per-pixel candidates' maps made
     again from the pooled pilots). Returns the chosen Trial."""
     pilot(make, trials, scene, sensor, seed, index)
+    return timed_choice(make, trials, scene, sensor, seed, trial_spp(sensor))
+
+
+def timed_choice(make, trials, scene, sensor, seed, spp):
+    """The choice after the pilots: pt where it is clear (``clear_pt``); else every cost-model
+    point timed (those not timed yet: pt, the classic estimator, vcm's, TIMED_CACHES and
+    TIMED_MERGING), the cost model, the per-pixel candidates (made again from the pilots so
+    far) and ``decide``. Returns the chosen Trial; ``trials`` gets the per-pixel ones."""
+    if clear_pt(make, trials, scene, sensor, seed, spp):
+        return trials[0]
+    for tr in trials:
+        if not tr.timed and tr.parts is None and \
+                (tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES)):
+            time_trial(make, tr, scene, sensor, seed, spp)
+    normalise(trials)               # over the trials' images (``denominator``)
     cost_model(trials)
     trials[:] = [tr for tr in trials if tr.parts is None] + per_pixel_trials(trials)
-    return decide(make, trials, scene, sensor, seed, trial_spp(sensor))
+    return decide(make, trials, scene, sensor, seed, spp)
+
+
+def probe(trials):
+    """The bidirectional candidate that takes the least time: the cache of the fewest light
+    subpaths and one connection, not merging (each other candidate does its work and more: more
+    light subpaths, connections or merges, or the classic estimator's light subpath per sample
+    with all its connections), or the classic estimator where there are no caches."""
+    lp = min(LIGHT_PATHS)
+    return next((tr for tr in trials if tr.cache == (lp, 1) and not tr.merges), trials[1])
+
+
+def clear_pt(make, trials, scene, sensor, seed, spp):
+    """Whether pt (``trials[0]``) is the choice without timing the others: with pt and ``probe``
+    timed (the probe until ``settled``: load only adds time, and a probe timed too long would
+    make every bound too low), no candidate could be chosen over pt even if it took the probe's
+    time, the least a bidirectional one takes: for each, 1 / (v max(t_probe, t_pt)) below
+    PREFER_PT / (v_pt t_pt), and for the per-pixel candidates (per_pixel_trials), whose v is
+    a mean over pixels of some cache's v there, the mean of the least v per pixel, their
+    efficiency over PER_PIXEL (``ranked``). On the Cornell box and veach-mis this leaves out 4-8 of
+    the 7-11 trial renders of a decision. The candidates not timed keep seconds and efficiency
+    None."""
+    pt, cheap = trials[0], probe(trials)
+    for tr in (pt, cheap):
+        if not tr.timed:
+            time_trial(make, tr, scene, sensor, seed, spp)
+    while not settled(cheap):
+        time_trial(make, cheap, scene, sensor, seed, spp)
+    normalise(trials)
+    if pt.rel_var is None or pt.missed >= MAX_MISSED:
+        return False
+    t_low = max(cheap.seconds, pt.seconds)
+    others = [tr for tr in trials[1:] if tr.parts is None and tr.rel_var is not None and tr.missed < MAX_MISSED]
+    bounds = [1.0 / max(tr.rel_var * t_low, 1e-30) for tr in others]
+    caches = [tr.pixel_var for tr in others if tr.cache is not None and tr.pixel_var is not None]
+    if caches:
+        least = float(np.mean(np.min(np.stack(caches), axis=0)))
+        bounds.append(1.0 / max(least * t_low, 1e-30) / PER_PIXEL)
+    for tr in (pt, cheap):          # (reported; ``ranked``'s)
+        tr.efficiency = 1.0 / max(tr.rel_var * max(tr.seconds, pt.seconds), 1e-30) if tr.rel_var is not None else None
+    return max(bounds, default=0.0) < PREFER_PT * pt.efficiency
 
 
 def box3(a):

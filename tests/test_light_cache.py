@@ -605,11 +605,12 @@ def test_auto_refuses_what_it_chooses_itself():
         mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})
 
 
-def _stub_choice(monkeypatch, rel_var, times):
+def _stub_choice(monkeypatch, rel_var, times, pixel_var=None):
     """auto.choose over the trials ``rel_var`` (name: predicted relMSE; names as auto.candidates
     gives them) with the pilot stubbed and each trial render's kernel time the next of
-    ``times[name]`` (seconds per spp; the last repeats). Returns (the chosen, the trials by
-    name, the trial renders made, in order)."""
+    ``times[name]`` (seconds per spp; the last repeats); ``pixel_var``: name: v per pixel, for
+    caches (their rel_var its mean). Returns (the chosen, the trials by name, the trial renders
+    made, in order)."""
     from bdpt_jit import auto
     made = []
     trials = [auto.Trial('pt', {'n': 'pt'}, (0.0, 0.0, 0.0)), auto.Trial('bdpt', {'n': 'bdpt'}, (1.0, 1.0, 0.0))]
@@ -619,9 +620,12 @@ def _stub_choice(monkeypatch, rel_var, times):
     def pilot(make, trials, scene, sensor, seed):
         for tr in trials:
             tr.rel_var, tr.missed = rel_var.get(tr.name, 1.0), 0.0
+            if pixel_var and tr.cache is not None:
+                tr.pixel_var = pixel_var.get(tr.name, np.full((16, 16), tr.rel_var))
+                tr.rel_var = float(np.mean(tr.pixel_var))
 
-    def make(settings):             # the trial render: its kernels' time is the stub's
-        made.append(settings['n'])
+    def make(settings, pixel_counts=None):     # the trial render: its kernels' time is the stub's
+        made.append(settings.get('n', 'per pixel'))
         return None
 
     def kernel_seconds(render):
@@ -644,13 +648,15 @@ def test_auto_times_close_calls_again(monkeypatch):
     values), and no candidate is timed more than auto.TIMINGS times, nor again once two of its
     timings agree within auto.SETTLED."""
     from bdpt_jit import auto
-    # a later timing under load (5.0) does not undo an earlier one (1.0): the least counts
-    rel = {'pt': 0.11, 'cache 0.25x1': 0.11}
+    # a later timing under load (5.0) does not undo an earlier one (1.0): the least counts (bdpt's
+    # v 0.05 at the probe's 1.5 could beat pt: not auto.clear_pt; at its own 3.0 it is the runner-up)
+    rel = {'pt': 0.11, 'cache 0.25x1': 0.11, 'bdpt': 0.05}
     times = {'pt': [1.0, 5.0], 'bdpt': [3.0], 'cache 0.25x1': [1.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt' and by['pt'].seconds == 1.0 and by['pt'].timings == auto.TIMINGS
     times = {'pt': [4.0, 1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5, 2.5, 2.5],
              'cache 1x1': [3.0, 2.0], 'cache 1x4': [4.0]}
+    rel = {'pt': 0.11, 'cache 0.25x1': 0.09}        # (at pt's 4.0 the cache could win: not clear_pt)
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt' and by['pt'].seconds == 1.0 and by['pt'].timings == 2
     assert max(tr.timings for tr in by.values()) <= auto.TIMINGS
@@ -753,12 +759,40 @@ def test_each_trial_render_has_a_seed_of_its_own(monkeypatch):
 
 def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
     """Where the best leads by more than auto.CLOSE, each cost-model point is timed once (and
-    the best, if it is modelled, once more before it is chosen): no re-timing."""
-    rel = {'pt': 0.01}
+    the best, if it is modelled, once more before it is chosen): no re-timing (the probe of
+    auto.clear_pt excepted: timed until two timings agree)."""
+    rel = {'bdpt': 0.01}
     times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
-    assert best.name == 'pt'
-    assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
+    assert best.name == 'bdpt'
+    assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
+
+
+def test_a_clear_pt_times_pt_and_the_cheapest_bidirectional_candidate_only(monkeypatch):
+    """auto.clear_pt: pt (v 0.1, 1.0 s) is chosen once no candidate could beat it even at the
+    least time of a bidirectional one (the probe, the cache 1/4 x 1: 2.0): the best other v, 0.06,
+    gives 1 / (0.06 x 2.0) = 8.3 < 1.1 x 10, so only pt and the probe (twice, until settled) are
+    timed. Not clear, and every cost-model point timed: a cache whose v (0.04) could win at the
+    probe's time (12.5); a probe whose first timing met load (6.0, then 2.0: at 6.0 the bound
+    would be 4.2); per-pixel candidates whose v per pixel (the least cache's in each pixel: 0.04
+    on average) could win though no cache's mean v could (0.07). Planted: pt's time as the bound's,
+    one timing of the probe, or the per-pixel bound left out, each fails a case."""
+    from bdpt_jit import auto
+    clear = ['pt', 'cache 0.25x1', 'cache 0.25x1']
+    rel = {'pt': 0.1, 'bdpt': 0.06, 'cache 1x4': 0.07}
+    times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.0], 'cache 1x1': [2.5], 'cache 1x4': [3.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times)
+    assert best.name == 'pt' and made == clear and by['bdpt'].seconds is None
+    points = {'pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'}
+    best, by, made = _stub_choice(monkeypatch, {**rel, 'cache 1x4': 0.04}, times)
+    assert set(made) >= points
+    best, by, made = _stub_choice(monkeypatch, {**rel, 'cache 1x4': 0.04}, {**times, 'cache 0.25x1': [6.0, 2.0]})
+    assert set(made) >= points and by['cache 0.25x1'].seconds == 2.0
+    # per pixel: two caches, each v 0.07 on average, 0.01 or 0.13 by halves, the halves crossed
+    half = np.repeat([[0.01], [0.13]], 8, axis=0) * np.ones((16, 16))
+    maps = {'cache 0.25x2': half, 'cache 0.25x4': half[::-1]}
+    best, by, made = _stub_choice(monkeypatch, rel, times | {'per pixel': [2.5]}, maps)
+    assert set(made) >= points
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])

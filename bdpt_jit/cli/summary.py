@@ -105,7 +105,8 @@ def _bdpt_statistics(info):
             f"{d['chosen']} {d['spp']:.4g} spp weight {d['weight']:.3g} after {d['seconds']:.2f} s" for d in decided))
         stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials{steps}; predicted relMSE at "
                          "1 spp x s/spp: " + ', '.join(
-                             f"{c['name']} {c['relmse_1spp']:.3g} x {c['seconds_per_spp']:.3g}"
+                             f"{c['name']} {c['relmse_1spp']:.3g} x "
+                             + ('not timed' if c['seconds_per_spp'] is None else f"{c['seconds_per_spp']:.3g}")
                              + (f" (misses {c['missed']:.1%})" if c['efficiency'] == 0 else '')
                              for c in a['candidates']))
     return stats
