@@ -159,7 +159,7 @@ class CameraTracer:
         active &= visible(tr)
         if c.fuse_draw:     # with the scatter's BSDF sample, for every lane that scatters
             f, pdf_bsdf_w, _ = v.eval_and_draw(c, ds.d, RADIANCE, self.ps.sampler, sub.active)
-            pdf_rev_w = v.pdf_rev_w(c, ds.d, RADIANCE, active)
+            pdf_rev_w = v.pdf_rev_w(c, ds.d, RADIANCE, active) if self.mis.reads_reverse else mi.Float(0.0)
         else:
             f, pdf_bsdf_w, pdf_rev_w, _ = v.eval(c, ds.d, RADIANCE, active)
         k = c.emitters.kinds(ds.emitter)

@@ -48,11 +48,12 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
     return None, reverse_pdf_w(bsdf, bsdf_ctx, si, bs.wo, active, ctx.diffuse)
 
 
-def _sample(ctx, mode, sampler, v, active):
+def _sample(ctx, mode, sampler, v, active, reverse=True):
     """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (the direction's
     density per unit solid angle, the throughput factor, the outgoing direction in world space, the reverse density, active, the delta mask
     or None, the samples, the relative index of refraction crossed (None where the scene does
-    not refract or the mode is importance: the roulette's, ``scatter``))."""
+    not refract or the mode is importance: the roulette's, ``scatter``)). ``reverse``: whether
+    the reverse density is needed (mis.MIS.reads_reverse); else 0, and no BSDF call for it."""
     si = v.si
     if getattr(v, 'drawn', None) is not None:      # drawn with the emitter sample's evaluation (Vertex.eval_and_draw)
         bs, bsdf_w, (u1, u2) = v.drawn
@@ -67,7 +68,7 @@ def _sample(ctx, mode, sampler, v, active):
         factor = bsdf_w * corr
     active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
     is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) if ctx.has_delta else None
-    exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta)
+    exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta) if reverse else (None, mi.Float(0.0))
     if exact is not None:
         factor = dr.select(exact[0], exact[1], factor)
     eta = dr.select(bs.eta > 0, bs.eta, 1.0) if (ctx.refracts and mode == RADIANCE) else None
@@ -80,7 +81,8 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
     the delta mask or None without delta lobes, the lobe and direction samples)."""
     if ctx.media is None:
-        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = _sample(ctx, mode, sampler, v, sub.active)
+        pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = _sample(ctx, mode, sampler, v, sub.active,
+                                                                                  mis.reads_reverse)
     else:       # a surface or a medium vertex (media_path.PathVertex)
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = media_path.sample_direction(
             ctx, mode, sampler, v, sub.active, _sample)
