@@ -125,6 +125,8 @@ class Context:
         self._record = None     # the stored light vertices' type: built when a store asks (record)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
         self.diffuse = None if ad else diffuse_table(scene)
+        if ad:      # likewise the sphere lights' table (direct.py): Mitsuba's sampling has the derivatives
+            self.emitters.all_spheres, self.emitters.sph_le = False, None
         # (the table makes no call to fuse; media and differentiable passes sample elsewhere)
         self.fuse_draw = FUSE_DRAW and self.diffuse is None and not ad and self.media is None
         # opaque: literals would be baked into the kernels and recompile them for every spp
@@ -212,7 +214,7 @@ class Context:
         arrays = []
         for obj in (self.emitters, self.offsets, self.diffuse, self.camera):
             for v in (vars(obj).values() if obj is not None else ()):
-                if dr.is_jit_v(v):
+                if v is not None and dr.is_jit_v(v):
                     arrays.append(v)
         if arrays:
             dr.make_opaque(*arrays)

@@ -31,8 +31,8 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
-from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_table,  # noqa: F401
-                             spot_cones)     # (projector_cone: re-exported)
+from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_radiance,  # noqa: F401
+                             sphere_table, spot_cones)     # (projector_cone: re-exported)
 
 
 def _or(a, b):
@@ -120,6 +120,10 @@ class EmitterTable(DirectSampling):
         self.cone_cos, self.cone_axis = spot_cones(emitters, ids, size)
         self.sph_r, self.sph_c = sphere_table(emitters, ids, size)
         self.has_sphere = bool(np.any(np.array(self.sph_r) > 0))
+        # every emitter a sphere of constant radiance (direct.py): its cone sampled here from any
+        # point outside it, its radiance read from this table
+        self.sph_le = sphere_radiance(emitters, ids, size) if self.has_sphere else None
+        self.all_spheres = self.sph_le is not None
         self.inv_area = inverse_areas(emitters, ids, size)
 
     def kinds(self, emitter):

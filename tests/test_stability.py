@@ -831,6 +831,44 @@ def test_guard_emitter_sampling_density_infinite():
     assert np.all(np.isfinite(pd)), f'{np.sum(~np.isfinite(pd))} of {pd.size} first-hit densities not finite'
 
 
+def test_sphere_lights_radiance_table_is_mitsubas():
+    """Where every emitter is a sphere of constant radiance (`EmitterTable.all_spheres`), s=1
+    reads each light's radiance from a table instead of calling the emitter: each sample's
+    weight must be Mitsuba's own value of that sample, eval_direction / pdf (emitter choice
+    included), for lights of other radiances and sizes, small-looking and not. A sphere with
+    flipped normals emits inwards: not in the table (its cone's points would carry outward
+    normals), and from outside its samples carry nothing. Planted: the table indexed by the
+    emitter's position in the scene instead of its id, or flipped spheres let in, fails."""
+    from bdpt_jit.endpoints import EmitterTable
+
+    def light(c, r, rgb, flip=False):
+        return {'type': 'sphere', 'center': c, 'radius': r, 'flip_normals': flip,
+                'emitter': {'type': 'area', 'radiance': sc.rgb(list(rgb))}}
+    scene = mi.load_dict({'type': 'scene', 'a': light([0, 3, 0], 0.01, (5.0, 2.0, 1.0)),
+                          'b': light([2, 2, 0], 0.8, (0.5, 1.0, 3.0)), 'c': light([-2, 2, 1], 0.3, (1.0, 1.0, 1.0))})
+    tab = EmitterTable(scene)
+    assert tab.all_spheres
+    n = 4096
+    rng = np.random.default_rng(3)
+    it = dr.zeros(mi.SurfaceInteraction3f, n)
+    it.p = mi.Point3f(*(mi.Float(rng.uniform(-0.5, 0.5, n).astype(np.float32)) for _ in range(3)))
+    it.n = mi.Normal3f(0.0, 1.0, 0.0)
+    u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
+    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    want = ds.emitter.eval_direction(it, ds, ds.pdf > 0) / ds.pdf
+    ok = np.array(ds.pdf) > 0
+    assert ok.all()
+    np.testing.assert_allclose(np.array(spec)[:, ok], np.array(want)[:, ok], rtol=1e-5)
+    assert len(np.unique(np.round(np.array(spec)[0] * np.array(ds.pdf), 3))) == 3     # all three lights sampled
+    flipped = mi.load_dict({'type': 'scene', 'a': light([0, 3, 0], 0.01, (5.0, 2.0, 1.0), flip=True),
+                            'b': light([2, 2, 0], 0.8, (0.5, 1.0, 3.0))})
+    tab = EmitterTable(flipped)
+    assert not tab.all_spheres
+    ds, spec = tab.sample_direct(it, u, dr.full(mi.Bool, True, n))
+    from_a = np.array(ds.emitter == flipped.emitters()[0])
+    assert from_a.any() and np.all(np.array(spec)[:, from_a] == 0)
+
+
 def _sphere_light_samples(center, r, n, seed):
     """(EmitterTable, reference points, DirectionSample3f, weights): ``n`` emitter samples
     (`EmitterTable.sample_direct`) of a sphere light of radiance 1, radius ``r`` at ``center``,
@@ -877,9 +915,11 @@ def test_sphere_emitter_sampling_irradiance(r, d):
     assert rel.max() < 1e-3, f'sampled density vs pdf_direct_w: max relative difference {rel.max():.3g}'
 
 
-@pytest.mark.parametrize('r,d', [(0.05, 1.0), (1e-3, 1.5), (0.05, 2.0)])
+@pytest.mark.parametrize('r,d', [(0.05, 1.0), (1e-3, 1.5), (0.05, 2.0), (0.5, 1.0), (0.9, 1.0)])
 def test_small_sphere_cone_sampling_is_uniform_in_solid_angle(r, d):
-    """`EmitterTable.sample_direct` on a small-looking sphere ((r/d)^2 < SMALL_SPHERE): each
+    """`EmitterTable.sample_direct` on a small-looking sphere ((r/d)^2 < SMALL_SPHERE; any sphere
+    seen from outside where every emitter is a sphere of constant radiance, as here: the last
+    two cases, ``all_spheres``): each
     sample is a point of the sphere (|p - c| = r) on its visible side, ds.d points at it, and
     the directions are uniform in solid angle over the visible cone, the density it reports
     (1 - cos(theta) / (1 - cos(theta_max)) uniform on [0, 1] by Kolmogorov-Smirnov at 1e-3, and
