@@ -81,8 +81,9 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
     the delta mask or None without delta lobes, the lobe and direction samples)."""
     if ctx.media is None:
+        # (a light subpath's always: with normal maps its exact adjoint comes with it, _reverse_pdf)
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = _sample(ctx, mode, sampler, v, sub.active,
-                                                                                  mis.reads_reverse)
+                                                                                  mis.reads_reverse or mode != RADIANCE)
     else:       # a surface or a medium vertex (media_path.PathVertex)
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = media_path.sample_direction(
             ctx, mode, sampler, v, sub.active, _sample)
