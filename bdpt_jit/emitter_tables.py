@@ -86,7 +86,7 @@ def sphere_radiance(emitters, ids, size):
         if v.size not in (1, channels):
             return None
         le[:, i] = np.broadcast_to(v, channels)
-    return mi.Spectrum(*le) if channels > 1 else mi.Spectrum(le[0])
+    return mi.Spectrum(le)         # (channels x emitter ids)
 
 
 def inverse_areas(emitters, ids, size):
