@@ -162,6 +162,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         def make(settings, pixel_counts=None):
             integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
             integ.pixel_counts = pixel_counts
+            # pilots and trials at the render's merging iteration so far (merge.py: the radius
+            # shrinks with it): a later decision predicts and times the merges at the radius the
+            # next segment has, not at the first iteration's
+            integ.merge_iteration = self.merge_iteration
             return integ
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)

@@ -556,6 +556,37 @@ def test_per_pixel_maps_of_a_large_crop():
     np.testing.assert_array_equal(conn.ravel(), np.array([1, 4])[out[0].pick][near])
 
 
+def test_auto_decides_again_at_the_render_s_merging_radius(monkeypatch):
+    """A later decision's pilots and trials are made at the render's merging iteration so far
+    (the radius shrinks with it: merge.py), so that it predicts and times the merges at the
+    radius the next segment has; the first decision of a fresh integrator at iteration 0.
+    REDECIDE made tiny and the later choices forced to vcm, whose segments advance the
+    iteration. Planted: the integrators made at iteration 0, fails."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, 'REDECIDE', 1e-6)
+    scene = load_scene('caustic.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
+    seen, rechoose, pilot_group = [], auto.rechoose, auto.pilot_group
+
+    def forced_rechoose(make, trials, *args):
+        rechoose(make, trials, *args)
+        return next(tr for tr in trials if tr.name == 'vcm')
+
+    def recorded_pilot_group(make, *args):
+        def made(settings, *rest):
+            out = make(settings, *rest)
+            seen.append((out.merge_iteration, integ.merge_iteration))
+            return out
+        return pilot_group(made, *args)
+    monkeypatch.setattr(auto, 'rechoose', forced_rechoose)
+    monkeypatch.setattr(auto, 'pilot_group', recorded_pilot_group)
+    mi.render(scene, integrator=integ, spp=64, seed=5)
+    decisions = integ.last_render_info['auto']['decisions']
+    assert [d['chosen'] for d in decisions[1:]] == ['vcm'] * (len(decisions) - 1) and len(decisions) >= 3
+    assert all(own == parent for own, parent in seen) and seen[0][0] == 0
+    assert max(own for own, _ in seen) >= 1        # a decision after a merging segment
+
+
 def test_auto_segment_plan():
     """When a render decides again: once it has run REDECIDE ** k times as long as its k
     decisions took (by the chosen candidate's seconds per spp), not where what is left to render
