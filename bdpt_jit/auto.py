@@ -444,12 +444,14 @@ def clear_pt(make, trials, scene, sensor, seed, spp):
     the 7-11 trial renders of a decision. The candidates not timed keep seconds and efficiency
     None."""
     pt, cheap = trials[0], probe(trials)
+    renders = pt.renders + cheap.renders
     for tr in (pt, cheap):
         if not tr.timed:
             time_trial(make, tr, scene, sensor, seed, spp)
     while not settled(cheap):
         time_trial(make, cheap, scene, sensor, seed, spp)
-    normalise(trials)
+    if pt.renders + cheap.renders > renders:       # new images for the denominator (pilot: the pilots')
+        normalise(trials)
     if pt.rel_var is None or pt.missed >= MAX_MISSED:
         return False
     t_low = max(cheap.seconds, pt.seconds)

@@ -24,6 +24,19 @@ def reverse_pdf_w(bsdf, ctx, si, wo_local, active, table=None):
     return bsdf.pdf(ctx, si_rev, si.wi, active)
 
 
+def constant_value(obj, key, others=()):
+    """The value of the parameter ``key`` of the Mitsuba object ``obj`` (mi.traverse), where it is
+    a constant (an RGB or a uniform spectrum) and ``others`` are the object's only other
+    parameters: its 1 or 3 values (NumPy), else None (a texture, a spectrum of wavelengths, ...)."""
+    params = mi.traverse(obj)
+    if sorted(params.keys()) != sorted((key,) + tuple(others)):
+        return None
+    if str(params.properties[key][2].class_name()) not in ('SRGBReflectanceSpectrum', 'UniformSpectrum'):
+        return None
+    v = np.array(params[key], dtype=np.float64).ravel()
+    return v if v.size in (1, 3) else None
+
+
 class DiffuseTable:
     """Mitsuba's ``diffuse`` BSDF with a constant reflectance, evaluated without a virtual
     call: its value R/pi cos_o and densities cos/pi (src/bsdfs/diffuse.cpp, one-sided: zero
@@ -54,16 +67,8 @@ class DiffuseTable:
 
     @staticmethod
     def constant_reflectance(bsdf):
-        if str(bsdf.class_name()) != 'SmoothDiffuse':
-            return None
-        params = mi.traverse(bsdf)
-        if list(params.keys()) != ['reflectance.value']:
-            return None
-        node = params.properties['reflectance.value'][2]
-        if str(node.class_name()) not in ('SRGBReflectanceSpectrum', 'UniformSpectrum'):
-            return None
-        v = np.array(params['reflectance.value'], dtype=np.float64).ravel()
-        return np.broadcast_to(v, 3) if v.size in (1, 3) else None
+        v = constant_value(bsdf, 'reflectance.value') if str(bsdf.class_name()) == 'SmoothDiffuse' else None
+        return None if v is None else np.broadcast_to(v, 3)
 
     def eval_pdf(self, si, bsdf, wo_local, active):
         """(R/pi cos_o, cos_o/pi, cos_i/pi): value, forward and reverse densities."""

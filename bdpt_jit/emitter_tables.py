@@ -10,6 +10,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .connect import constant_value
+
 
 def emitter_kinds(flags) -> set:
     """The kinds (Kinds' names) of one emitter, from its flags (Python ints)."""
@@ -43,47 +45,41 @@ def spot_cones(emitters, ids, size):
     return mi.Float(cos_cut), mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
 
 
+def cone_sphere(emitter) -> bool:
+    """Whether emitter sampling of ``emitter`` may sample its visible cone itself (direct.py): an
+    untextured sphere area emitter. Not a textured sphere (Mitsuba samples it by the texture), nor
+    one with flipped normals, which emits inwards, where the cone's points carry outward normals."""
+    shape = emitter.get_shape()
+    return (shape is not None and shape.class_name() == 'Sphere' and emitter_kinds(emitter.flags()) == {'area'}
+            and not mi.has_flag(emitter.flags(), mi.EmitterFlags.SpatiallyVarying) and not shape.has_flipped_normals())
+
+
 def sphere_table(emitters, ids, size):
-    """(radius, centre) per emitter id of untextured sphere area emitters, whose emitter
-    sampling from points that see them small is done by bdpt (direct.py); radius 0 for every
-    other emitter (a textured sphere keeps Mitsuba's sampling: by the texture, no cone; a sphere
-    with flipped normals, which emits inwards, too: the cone's points carry outward normals)."""
+    """(radius, centre) per emitter id of the ``cone_sphere`` emitters, whose emitter sampling from
+    points that see them small is done by bdpt (direct.py); radius 0 for every other emitter."""
     sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
     for e, i in zip(emitters, ids):
-        shape = e.get_shape()
-        if shape is not None and shape.class_name() == 'Sphere' and emitter_kinds(e.flags()) == {'area'} \
-                and not mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying) and not shape.has_flipped_normals():
-            m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
+        if cone_sphere(e):
+            m = np.array(mi.traverse(e.get_shape())['to_world'].matrix, dtype=np.float64).reshape(4, 4)
             sph_r[i] = float(np.linalg.norm(m[:3, 0]))
             sph_c[i] = [float(x) for x in m[:3, 3]]
     return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
 
 
 def sphere_radiance(emitters, ids, size):
-    """The radiance per emitter id of every emitter, where each is a sphere of sphere_table (r > 0)
-    whose radiance is a constant Mitsuba exposes (an RGB or uniform spectrum, as
-    context.DiffuseTable reads a reflectance): a table of mi.Spectrum, which emitter sampling
-    reads instead of the emitter's ``eval_direction`` (direct.py, ``all_spheres``). None where any
-    emitter is something else, and in spectral variants (a radiance there is a spectrum that
-    the sample's wavelengths evaluate)."""
+    """The radiance per emitter id where every emitter is a ``cone_sphere`` area light whose
+    radiance is a constant (connect.constant_value): a table of mi.Spectrum, which emitter
+    sampling reads instead of the emitter's ``eval_direction`` (direct.py, ``all_spheres``). None
+    where any emitter is something else, and in spectral variants (a radiance there is a
+    spectrum that the sample's wavelengths evaluate)."""
     if mi.is_spectral or not emitters:
         return None
     channels = 1 if mi.is_monochromatic else 3
     le = np.zeros((channels, size), np.float32)
     for e, i in zip(emitters, ids):
-        shape = e.get_shape()
-        if shape is None or shape.class_name() != 'Sphere' or emitter_kinds(e.flags()) != {'area'} \
-                or mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying) or e.class_name() != 'AreaLight' \
-                or shape.has_flipped_normals():
-            return None
-        params = mi.traverse(e)
-        if sorted(params.keys()) != ['radiance.value', 'sampling_weight']:
-            return None
-        node = params.properties['radiance.value'][2]
-        if str(node.class_name()) not in ('SRGBReflectanceSpectrum', 'UniformSpectrum'):
-            return None
-        v = np.array(params['radiance.value'], dtype=np.float64).ravel()
-        if v.size not in (1, channels):
+        v = constant_value(e, 'radiance.value', ('sampling_weight',)) \
+            if cone_sphere(e) and e.class_name() == 'AreaLight' else None
+        if v is None or v.size not in (1, channels):
             return None
         le[:, i] = np.broadcast_to(v, channels)
     return mi.Spectrum(le)         # (channels x emitter ids)

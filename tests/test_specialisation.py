@@ -216,3 +216,35 @@ def test_sparse_strategies_in_branches(name, technique, monkeypatch):
     for k, layers in out[True][1].items():
         for kind, layer in layers.items():
             np.testing.assert_allclose(layer, out[False][1][k][kind], rtol=1e-5, atol=1e-6 * scale, err_msg=k)
+
+
+def test_reverse_densities_only_where_a_weight_reads_them(monkeypatch):
+    """mis.MIS.reads_reverse: pt's camera subpaths ask for no reverse BSDF density (no weight of
+    pt reads d_vc or d_vm), and its image with the same seed equals the one rendered with them
+    (to rounding): a weight that did read them would change. Light subpaths always ask for it:
+    vm's, on a normal-mapped scene, carry the exact adjoint that comes with it
+    (transport._reverse_pdf). Planted: pt asking for them, or vm's light subpaths not, fails."""
+    import bdpt_jit.transport as transport
+    from bdpt_jit.mis import MIS
+    from stability_cases import normal_mapped
+    modes, reverse_pdf = [], transport._reverse_pdf
+
+    def recorded(ctx, mode, *args):
+        modes.append(mode)
+        return reverse_pdf(ctx, mode, *args)
+    monkeypatch.setattr(transport, '_reverse_pdf', recorded)
+    scene = mi.load_dict(_shapes_scene())
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'pt'})
+    a = np.array(mi.render(scene, integrator=integ, spp=16, seed=7))
+    assert modes == []
+    monkeypatch.setattr(MIS, 'reads_reverse', property(lambda self: True))
+    b = np.array(mi.render(scene, integrator=integ, spp=16, seed=7))
+    assert modes and set(modes) == {'radiance'}
+    assert np.isfinite(a).all() and a.max() > 0
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * b.max())
+    monkeypatch.undo()
+    monkeypatch.setattr(transport, '_reverse_pdf', recorded)
+    modes.clear()
+    vm = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'vm'})
+    mi.render(mi.load_dict(normal_mapped(8)), integrator=vm, spp=1, seed=7)
+    assert 'importance' in modes and 'radiance' not in modes
