@@ -7,6 +7,7 @@ Statistical bounds: a mean of N independent estimates is compared with its analy
 within Z = 5 of its standard errors (estimated from the samples); a KS statistic against 1.95 /
 sqrt(N) (alpha = 0.001)."""
 
+import gc
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -452,6 +453,11 @@ def test_stiff_phase_finite(g, albedo):
 
 # ---------------------------------------------------------------------- scenes without media
 def _kernel_hashes(scene):
+    # garbage first: a virtual call's kernel code depends on how many instances of its domain
+    # are alive (one: a direct call; several: a dispatch), and an earlier test's scene left in
+    # a reference cycle, collected between two measurements, changed the kernels of the second
+    # (seen once in a full run; reproduced with a garbage scene of two other BSDFs)
+    gc.collect()
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4})
     mi.render(scene, integrator=integ, spp=1)
     dr.set_flag(dr.JitFlag.KernelHistory, True)

@@ -1,6 +1,7 @@
 """The kernels are specialised to the scene and the settings: what a setting does not need is
 not traced. Measured from Dr.Jit's kernel history (operations in the launched kernels)."""
 
+import gc
 import re
 
 import drjit as dr
@@ -16,6 +17,7 @@ from stability_cases import cornell
 def traced_ops(scene, loops=None, **params):
     """(total operations of the JIT kernels launched by one render, their count, render info).
     ``loops``: a list that receives, per kernel, the labels of the symbolic loops it holds."""
+    gc.collect()    # (a virtual call's code depends on how many instances are alive: test_media._kernel_hashes)
     integ = mi.load_dict({'type': 'bdpt', **params})
     mi.render(scene, integrator=integ, spp=1)     # warm-up: one-off setup kernels (emitter tables)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
