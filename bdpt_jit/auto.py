@@ -313,7 +313,9 @@ def cost_model(trials):
     each cache timed later (the best by the model, before it is chosen) joins them. From the
     first three alone a noisy point set a slope to 0 (on veach-bidir the cache 1 x 4 timed below
     1 x 1, so connections cost nothing), and each cache with more connections was timed in turn
-    as the best (8-21 trial renders in a choice there, 2-6 s)."""
+    as the best (8-21 trial renders in a choice there, 2-6 s). No prediction goes below pt's
+    time (each cache does pt's work and more; the free intercept of a noisy fit can be negative:
+    a 16 x 16 caustic on CI's machine predicted -9e-6 s)."""
     plain = [(tr.cache, tr.seconds) for tr in trials if tr.timed and tr.cache is not None and not tr.merges]
     if len({cache for cache, _ in plain}) < 3:
         return
@@ -327,10 +329,11 @@ def cost_model(trials):
     e = g = 0.0
     if len({lp for lp, _ in extra}) >= 2:           # merges at two n_L/n at least
         e, g = nonnegative_fit([(1.0, lp) for lp, _ in extra], [x for _, x in extra], free=0)
+    floor = named.get('pt', 1e-9)       # each cache does pt's work and more (a free intercept can go below)
     for tr in trials:
         if tr.cache is not None and not tr.timed:
             lp, c = tr.cache
-            tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), 1e-9)
+            tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), floor)
 
 
 def nonnegative_fit(rows, values, free):

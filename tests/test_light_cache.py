@@ -408,6 +408,7 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
         if not c['timed']:
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
             want_t = a + b * n_l + d * conn + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
+            want_t = max(want_t, t_pt)      # no cache below pt's time (a noisy fit's intercept can go below 0)
             np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-5, atol=1e-9)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     if 'pixel_counts' in best:
