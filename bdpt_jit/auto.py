@@ -15,8 +15,9 @@ SIGGRAPH 2022) and each candidate's measured time.
    delta vertices only (BEHIND_DELTA) has a pilot of its own merge set.
 2. The cost: first pt and the cheapest bidirectional candidate (``probe``) are timed, and where
    no candidate could be chosen over pt even at the probe's time, pt is (``clear_pt``). Else
-   path tracing, the classic estimator and three caches render TRIAL_SPP samples per
-   pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
+   the classic estimator, vcm's and three caches are timed where a candidate they decide could
+   still be chosen at the least time it could take (``time_points``). A trial renders TRIAL_SPP
+   samples per pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
    t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
    history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the timed caches
    (cost_model), linear in the light subpaths per camera sample and in the connections per
@@ -314,8 +315,10 @@ def cost_model(trials):
     first three alone a noisy point set a slope to 0 (on veach-bidir the cache 1 x 4 timed below
     1 x 1, so connections cost nothing), and each cache with more connections was timed in turn
     as the best (8-21 trial renders in a choice there, 2-6 s). No prediction goes below pt's
-    time (each cache does pt's work and more; the free intercept of a noisy fit can be negative:
-    a 16 x 16 caustic on CI's machine predicted -9e-6 s)."""
+    and the probe's times (``least_time``: each cache does their work and more; the free
+    intercept of a noisy fit can be negative: a 16 x 16 caustic on CI's machine predicted
+    -9e-6 s). Without a timed merging cache (``time_points`` found none could win) the merging
+    caches keep seconds None."""
     plain = [(tr.cache, tr.seconds) for tr in trials if tr.timed and tr.cache is not None and not tr.merges]
     if len({cache for cache, _ in plain}) < 3:
         return
@@ -329,9 +332,10 @@ def cost_model(trials):
     e = g = 0.0
     if len({lp for lp, _ in extra}) >= 2:           # merges at two n_L/n at least
         e, g = nonnegative_fit([(1.0, lp) for lp, _ in extra], [x for _, x in extra], free=0)
-    floor = named.get('pt', 1e-9)       # each cache does pt's work and more (a free intercept can go below)
+    merging = any(tr.timed and tr.merges and tr.cache is not None for tr in trials)
+    floor = least_time(probe(trials), trials)       # (a free intercept can go below)
     for tr in trials:
-        if tr.cache is not None and not tr.timed:
+        if tr.cache is not None and not tr.timed and (merging or not tr.merges):
             lp, c = tr.cache
             tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), floor)
 
@@ -411,20 +415,104 @@ def rechoose(make, trials, scene, sensor, seed, index):
 
 
 def timed_choice(make, trials, scene, sensor, seed, spp):
-    """The choice after the pilots: pt where it is clear (``clear_pt``); else every cost-model
-    point timed (those not timed yet: pt, the classic estimator, vcm's, TIMED_CACHES and
-    TIMED_MERGING), the cost model, the per-pixel candidates (made again from the pilots so
-    far) and ``decide``. Returns the chosen Trial; ``trials`` gets the per-pixel ones."""
+    """The choice after the pilots: pt where it is clear (``clear_pt``); else the cost-model
+    points and candidates that could still win timed (``time_points``: of the classic
+    estimator, vcm's, BEHIND_DELTA's, TIMED_CACHES and TIMED_MERGING), the cost model, the
+    per-pixel candidates (made again from the pilots so far) and ``decide``. Returns the chosen
+    Trial; ``trials`` gets the per-pixel ones."""
     if clear_pt(make, trials, scene, sensor, seed, spp):
         return trials[0]
-    for tr in trials:
-        if not tr.timed and tr.parts is None and \
-                (tr.cache is None or (tr.cache == TIMED_MERGING if tr.merges else tr.cache in TIMED_CACHES)):
-            time_trial(make, tr, scene, sensor, seed, spp)
+    trials[:] = [tr for tr in trials if tr.parts is None]
+    time_points(make, trials, scene, sensor, seed, spp)
     normalise(trials)               # over the trials' images (``denominator``)
     cost_model(trials)
     trials[:] = [tr for tr in trials if tr.parts is None] + per_pixel_trials(trials)
     return decide(make, trials, scene, sensor, seed, spp)
+
+
+def time_points(make, trials, scene, sensor, seed, spp):
+    """Times the trials of the groups of ``point_groups`` that could still give the choice, one
+    trial at a time, from the group of the highest bound, in the group's order: a group whose
+    bound is at most the best score among the trials timed so far (``score``) is not timed
+    further (a bound falls as the least times rise, and a timed trial's score rises as its time
+    falls). On veach-bidir vcm's trial (0.6 s a sample per pixel at 256 x 256, 3.6 times the
+    time of vcm behind delta, with v 0.47 against its 0.32) could not win and was timed in every
+    decision: now the classic estimator's time (vcm's least) leaves it out."""
+    while True:
+        best = max((score(tr, trials[0]) for tr in trials if tr.timed), default=0.0)
+        todo = [(bound, group) for bound, group in point_groups(trials)
+                if bound > best and any(not tr.timed for tr in group)]
+        if not todo:
+            return
+        group = max(todo, key=lambda x: x[0])[1]
+        time_trial(make, next(tr for tr in group if not tr.timed), scene, sensor, seed, spp)
+        normalise(trials)
+
+
+def point_groups(trials):
+    """[(a bound on the score of the candidates a group's timings decide, the group)]: the
+    classic estimator's trial; vcm's and BEHIND_DELTA's, each after the classic estimator's (its
+    time is their least); the plain caches of TIMED_CACHES (the cost model's points: every
+    cache's and every per-pixel candidate's time); and where merging caches are offered,
+    TIMED_MERGING, then the classic estimator's and vcm's (the merges' extra time). Each bound is
+    the score at the least time the candidate could take (``least_time``), a per-pixel
+    candidate's from the mean of the least v per pixel over the caches (over PER_PIXEL)."""
+    pt = trials[0]
+    named = {tr.name: tr for tr in trials}
+    caches = [tr for tr in trials if tr.cache is not None]
+    out = [(upper(named[name], least_time(named[name], trials), pt), [named['bdpt'], named[name]])
+           for name in ('bdpt', 'vcm', BEHIND_DELTA) if name in named]
+    if caches:
+        t = least_time(caches[0], trials)
+        pixel = per_pixel_bound(caches, t)
+        plain = [tr for tr in caches if not tr.merges and tr.cache in TIMED_CACHES]
+        out.append((max([upper(tr, t, pt) for tr in caches] + [pixel]), plain))
+        merging = [tr for tr in caches if tr.merges]
+        if merging:
+            point = [tr for tr in merging if tr.cache == TIMED_MERGING] + [named['bdpt'], named['vcm']]
+            out.append((max([upper(tr, t, pt) for tr in merging] + [pixel]), point))
+    return out
+
+
+def least_time(trial, trials):
+    """The least seconds per spp ``trial`` could take, from the timed ones: pt's and the probe's
+    (``probe``: each bidirectional candidate does its work and more), and for vcm's and
+    BEHIND_DELTA's the classic estimator's too (they merge besides)."""
+    named = {tr.name: tr for tr in trials}
+    t = max(named['pt'].seconds or 0.0 if 'pt' in named else 0.0, probe(trials).seconds or 0.0)
+    bdpt = named.get('bdpt')
+    if trial.counts[2] > 0 and trial.cache is None and bdpt is not None and bdpt.timed:
+        t = max(t, bdpt.seconds)
+    return t
+
+
+def ok(trial):
+    """Whether ``trial`` can be chosen: a predicted v, and it misses less than MAX_MISSED."""
+    return trial.rel_var is not None and trial.missed is not None and trial.missed < MAX_MISSED
+
+
+def upper(trial, t, pt):
+    """``trial``'s score (``score``) if it took ``t`` seconds per spp; 0 where it cannot be chosen."""
+    if not ok(trial):
+        return 0.0
+    t_pt = (pt.seconds or 0.0) if pt is not None else 0.0
+    return 1.0 / max(trial.rel_var * max(t, t_pt), 1e-30) * (PREFER_PT if trial is pt else 1.0)
+
+
+def score(trial, pt):
+    """What the choice ranks (``ranked``): the efficiency 1 / (v max(t, pt's t)), pt's counted
+    PREFER_PT times, a per-pixel candidate's over PER_PIXEL; 0 where it cannot be chosen."""
+    return upper(trial, trial.seconds, pt) / (PER_PIXEL if trial.parts is not None else 1.0)
+
+
+def per_pixel_bound(caches, t):
+    """The score a per-pixel candidate of ``caches`` could have at ``t`` seconds per spp: the
+    mean over pixels of the least v per pixel (over PER_PIXEL); 0 without per-pixel v."""
+    maps = [tr.pixel_var for tr in caches if ok(tr) and tr.pixel_var is not None]
+    if not maps:
+        return 0.0
+    least = float(np.mean(np.min(np.stack(maps), axis=0)))
+    return 1.0 / max(least * t, 1e-30) / PER_PIXEL
 
 
 def probe(trials):
@@ -455,18 +543,11 @@ def clear_pt(make, trials, scene, sensor, seed, spp):
         time_trial(make, cheap, scene, sensor, seed, spp)
     if pt.renders + cheap.renders > renders:       # new images for the denominator (pilot: the pilots')
         normalise(trials)
-    if pt.rel_var is None or pt.missed >= MAX_MISSED:
+    if not ok(pt):
         return False
-    t_low = max(cheap.seconds, pt.seconds)
-    others = [tr for tr in trials[1:] if tr.parts is None and tr.rel_var is not None and tr.missed < MAX_MISSED]
-    bounds = [1.0 / max(tr.rel_var * t_low, 1e-30) for tr in others]
-    caches = [tr.pixel_var for tr in others if tr.cache is not None and tr.pixel_var is not None]
-    if caches:
-        least = float(np.mean(np.min(np.stack(caches), axis=0)))
-        bounds.append(1.0 / max(least * t_low, 1e-30) / PER_PIXEL)
     for tr in (pt, cheap):          # (reported; ``ranked``'s)
         tr.efficiency = 1.0 / max(tr.rel_var * max(tr.seconds, pt.seconds), 1e-30) if tr.rel_var is not None else None
-    return max(bounds, default=0.0) < PREFER_PT * pt.efficiency
+    return max((bound for bound, _ in point_groups(trials)), default=0.0) <= score(pt, pt)
 
 
 def box3(a):
@@ -550,7 +631,8 @@ def per_pixel_trials(trials):
     from .pixel_counts import PixelCounts
     out = []
     for lp in LIGHT_PATHS:
-        parts = [tr for tr in trials if tr.cache is not None and tr.cache[0] == lp and tr.pixel_var is not None]
+        parts = [tr for tr in trials if tr.cache is not None and tr.cache[0] == lp and tr.pixel_var is not None
+                 and tr.seconds is not None]
         if len(parts) < 2:
             continue
         pick = assign(parts)
@@ -632,13 +714,12 @@ def segment_weights(segments):
 
 
 def ranked(trials):
-    """Each trial's efficiency, 1 / (v max(t, pt's t)) (0 where it misses more than MAX_MISSED):
-    (the best, pt's efficiency counted PREFER_PT times; the runner-up or None)."""
+    """Each trial's efficiency, 1 / (v max(t, pt's t)) (0 where it misses more than MAX_MISSED;
+    None where it has no time: neither timed nor modelled, ``time_points``): (the best by
+    ``score``; the runner-up or None)."""
     pt = next((tr for tr in trials if tr.name == 'pt' and tr.seconds is not None), None)
+    known = [tr for tr in trials if tr.seconds is not None]
     for tr in trials:
-        ok = tr.missed < MAX_MISSED
-        t = tr.seconds if pt is None else max(tr.seconds, pt.seconds)   # pt's work and more
-        tr.efficiency = 1.0 / max(tr.rel_var * t, 1e-30) if ok else 0.0
-    order = sorted(trials, key=lambda tr: -tr.efficiency * (PREFER_PT if tr is pt else 1.0)
-                   / (PER_PIXEL if tr.parts is not None else 1.0))
+        tr.efficiency = None if tr.seconds is None else upper(tr, tr.seconds, pt) / (PREFER_PT if tr is pt else 1.0)
+    order = sorted(known, key=lambda tr: -score(tr, pt))
     return order[0], (order[1] if len(order) > 1 and order[1].efficiency > 0 else None)

@@ -372,44 +372,55 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
             assert isinstance(conn, np.ndarray) and (m is None or isinstance(m, np.ndarray))
             assert conn.shape == (16, 16) and set(np.unique(conn)) <= set(auto.CONNECTIONS)
             assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
-    # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt
+    # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt;
+    # candidates that no timing could make the best have no time (auto.time_points)
     t_pt = info['candidates'][0]['seconds_per_spp']
-    best = max(info['candidates'], key=lambda c: c['efficiency'] * (auto.PREFER_PT if c['name'] == 'pt' else 1)
+    known = [c for c in info['candidates'] if c['seconds_per_spp'] is not None]
+    best = max(known, key=lambda c: c['efficiency'] * (auto.PREFER_PT if c['name'] == 'pt' else 1)
                / (auto.PER_PIXEL if 'per pixel' in c['name'] else 1))
     assert info['chosen'] == best['name'] and info['trial_spp'] == auto.TRIAL_SPP
     for c in info['candidates']:
-        assert c['relmse_1spp'] > 0 and c['seconds_per_spp'] > 0
+        assert c['relmse_1spp'] > 0 and (c['counts'][2] > 0) == ('vcm' in c['name'])
+        if c['seconds_per_spp'] is None:
+            assert c['efficiency'] is None and not c['timed']
+            continue
+        assert c['seconds_per_spp'] > 0
         assert c['efficiency'] == 0.0 if c['missed'] >= auto.MAX_MISSED else np.isclose(
             c['efficiency'], 1 / (c['relmse_1spp'] * max(c['seconds_per_spp'], t_pt)), rtol=1e-6)
-        assert (c['counts'][2] > 0) == ('vcm' in c['name'])
     # the cost model: linear in light_paths and connections, least squares (scipy's bounded
     # lsq_linear here) through the timed caches, a merging cache's its cache's plus e + g
     # light_paths through vcm's and the timed merging caches' extra times (the best by the model
-    # was timed too: the chosen one is)
+    # was timed too: the chosen one is); pt and the probe (auto.clear_pt) always timed, the
+    # caches modelled only where the model's points were timed (three plain caches at least; a
+    # merging cache for the merging ones), none below pt's or the probe's time
     timed = {c['name']: c['seconds_per_spp'] for c in info['candidates'] if c['timed']}
-    want = ['pt', 'bdpt'] + [f'cache {n:g}x{c}' for n, c in auto.TIMED_CACHES]
-    if merging:
-        want += ['vcm', auto.BEHIND_DELTA, 'vcm cache {:g}x{}'.format(*auto.TIMED_MERGING)]
-    assert set(want) <= set(timed) and best['timed']
+    assert {'pt', 'cache 0.25x1'} <= set(timed) and best['timed']
     from scipy.optimize import lsq_linear
     t = {c['name']: c['seconds_per_spp'] for c in info['candidates']}
     caches = [c for c in info['candidates'] if 'light_paths' in c['settings'] and 'per pixel' not in c['name']]
     plain = [c for c in caches if c['timed'] and 'vcm' not in c['name']]
-    A = np.array([[1.0, c['settings']['light_paths'], c['settings']['connections']] for c in plain])
-    a, b, d = lsq_linear(A, np.array([c['seconds_per_spp'] for c in plain]), bounds=([-np.inf, 0, 0], np.inf), method='bvls').x
+    modelled = len(plain) >= 3
+    if modelled:
+        A = np.array([[1.0, c['settings']['light_paths'], c['settings']['connections']] for c in plain])
+        a, b, d = lsq_linear(A, np.array([c['seconds_per_spp'] for c in plain]), bounds=([-np.inf, 0, 0], np.inf),
+                             method='bvls').x
+    merges_modelled = modelled and any(c['timed'] and 'vcm' in c['name'] for c in caches)
     e = g = 0.0
-    if merging:
-        pts = [(1.0, t['vcm'] - t['bdpt'])] + [
-            (c['settings']['light_paths'], c['seconds_per_spp'] - (a + b * c['settings']['light_paths'] + d * c['settings']['connections']))
-            for c in caches if c['timed'] and 'vcm' in c['name']]
+    if merges_modelled:
+        pts = [(1.0, t['vcm'] - t['bdpt'])] if t['vcm'] is not None and t['bdpt'] is not None else []
+        pts += [(c['settings']['light_paths'], c['seconds_per_spp'] - (a + b * c['settings']['light_paths'] + d * c['settings']['connections']))
+                for c in caches if c['timed'] and 'vcm' in c['name']]
         if len({x for x, _ in pts}) >= 2:
             e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf), method='bvls').x
+    floor = max(t_pt, t['cache 0.25x1'])       # no cache below them (a noisy fit's intercept can go below 0)
     for c in caches:
         if not c['timed']:
+            if not (merges_modelled if 'vcm' in c['name'] else modelled):
+                assert c['seconds_per_spp'] is None, c['name']
+                continue
             n_l, conn = c['settings']['light_paths'], c['settings']['connections']
             want_t = a + b * n_l + d * conn + ((e + g * n_l) if 'vcm' in c['name'] else 0.0)
-            want_t = max(want_t, t_pt)      # no cache below pt's time (a noisy fit's intercept can go below 0)
-            np.testing.assert_allclose(c['seconds_per_spp'], want_t, rtol=1e-5, atol=1e-9)
+            np.testing.assert_allclose(c['seconds_per_spp'], max(want_t, floor), rtol=1e-5, atol=1e-9)
     alone = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **best['settings']})
     if 'pixel_counts' in best:
         from bdpt_jit.pixel_counts import PixelCounts
@@ -637,17 +648,20 @@ def test_auto_refuses_what_it_chooses_itself():
         mi.load_dict({'type': 'bdpt', 'technique': 'auto', 'light_paths': 1.0})
 
 
-def _stub_choice(monkeypatch, rel_var, times, pixel_var=None):
+def _stub_choice(monkeypatch, rel_var, times, pixel_var=None, merging=False):
     """auto.choose over the trials ``rel_var`` (name: predicted relMSE; names as auto.candidates
     gives them) with the pilot stubbed and each trial render's kernel time the next of
     ``times[name]`` (seconds per spp; the last repeats); ``pixel_var``: name: v per pixel, for
-    caches (their rel_var its mean). Returns (the chosen, the trials by name, the trial renders
-    made, in order)."""
+    caches (their rel_var its mean); ``merging``: vcm's, auto.BEHIND_DELTA's and the merging
+    caches too. Returns (the chosen, the trials by name, the trial renders made, in order)."""
     from bdpt_jit import auto
     made = []
     trials = [auto.Trial('pt', {'n': 'pt'}, (0.0, 0.0, 0.0)), auto.Trial('bdpt', {'n': 'bdpt'}, (1.0, 1.0, 0.0))]
-    trials += [auto.Trial(f'cache {lp:g}x{c}', {'n': f'cache {lp:g}x{c}'}, (c, lp, 0.0), (lp, c))
-               for lp in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
+    if merging:
+        trials += [auto.Trial(name, {'n': name}, (1.0, 1.0, 1.0)) for name in ('vcm', auto.BEHIND_DELTA)]
+    for m in ('', 'vcm ') if merging else ('',):
+        trials += [auto.Trial(f'{m}cache {lp:g}x{c}', {'n': f'{m}cache {lp:g}x{c}'}, (c, lp, lp if m else 0.0), (lp, c))
+                   for lp in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
 
     def pilot(make, trials, scene, sensor, seed):
         for tr in trials:
@@ -702,7 +716,8 @@ def test_auto_times_close_calls_again(monkeypatch):
     assert by['pt'].timings == by['cache 0.25x1'].timings == 2
     # a cost-model point in the close call: the cache 1 x 1's time falls 3.0 -> 1.5, so the least
     # squares through (n_L, c, t) = (0.25, 1, 2.5), (1, 1, 1.5), (1, 4, 4.0) would have b = -4/3:
-    # b held at 0, a + d c through them is d = 2/3, a = 4/3 (stale: a, b, d = 2, 2/3, 1/3)
+    # b held at 0, a + d c through them is d = 2/3, a = 4/3 (stale: a, b, d = 2, 2/3, 1/3); none
+    # below the probe's 2.5 (auto.least_time)
     rel = {'bdpt': 0.12, 'cache 1x1': 0.11}
     times = {'pt': [1.0], 'bdpt': [2.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0, 1.5], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
@@ -713,7 +728,7 @@ def test_auto_times_close_calls_again(monkeypatch):
         for c in auto.CONNECTIONS:
             tr = by[f'cache {lp:g}x{c}']
             if not tr.timed:
-                assert np.isclose(tr.seconds, 4.0 / 3.0 + 2.0 / 3.0 * c), tr.name
+                assert np.isclose(tr.seconds, max(4.0 / 3.0 + 2.0 / 3.0 * c, 2.5)), tr.name    # (not below the probe's)
 
 
 def test_the_cost_model_takes_every_timed_cache():
@@ -790,32 +805,35 @@ def test_each_trial_render_has_a_seed_of_its_own(monkeypatch):
 
 
 def test_auto_does_not_time_a_clear_choice_again(monkeypatch):
-    """Where the best leads by more than auto.CLOSE, each cost-model point is timed once (and
-    the best, if it is modelled, once more before it is chosen): no re-timing (the probe of
-    auto.clear_pt excepted: timed until two timings agree)."""
+    """Where the best leads by more than auto.CLOSE, each trial is timed once: no re-timing (the
+    probe of auto.clear_pt excepted: timed until two timings agree); and no cost-model point is
+    timed whose candidates could not win at the least time they could take (auto.time_points:
+    bdpt, v 0.01 at 3.0, scores 33; the caches, v 1, at most 0.4 at the probe's 2.5)."""
     rel = {'bdpt': 0.01}
     times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.5], 'cache 1x1': [3.0], 'cache 1x4': [4.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'bdpt'
-    assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'])
+    assert sorted(made) == sorted(['pt', 'bdpt', 'cache 0.25x1', 'cache 0.25x1'])
+    assert by['cache 1x1'].seconds is None and by['cache 1x1'].efficiency is None
 
 
 def test_a_clear_pt_times_pt_and_the_cheapest_bidirectional_candidate_only(monkeypatch):
     """auto.clear_pt: pt (v 0.1, 1.0 s) is chosen once no candidate could beat it even at the
     least time of a bidirectional one (the probe, the cache 1/4 x 1: 2.0): the best other v, 0.06,
     gives 1 / (0.06 x 2.0) = 8.3 < 1.1 x 10, so only pt and the probe (twice, until settled) are
-    timed. Not clear, and every cost-model point timed: a cache whose v (0.04) could win at the
+    timed. Not clear, and the caches' cost-model points timed: a cache whose v (0.04) could win at the
     probe's time (12.5); a probe whose first timing met load (6.0, then 2.0: at 6.0 the bound
     would be 4.2); per-pixel candidates whose v per pixel (the least cache's in each pixel: 0.04
     on average) could win though no cache's mean v could (0.07). Planted: pt's time as the bound's,
-    one timing of the probe, or the per-pixel bound left out, each fails a case."""
+    one timing of the probe, or the per-pixel bound left out, each fails a case. (bdpt, which
+    then could not win at the probe's time, is not timed: auto.time_points.)"""
     from bdpt_jit import auto
     clear = ['pt', 'cache 0.25x1', 'cache 0.25x1']
     rel = {'pt': 0.1, 'bdpt': 0.06, 'cache 1x4': 0.07}
     times = {'pt': [1.0], 'bdpt': [3.0], 'cache 0.25x1': [2.0], 'cache 1x1': [2.5], 'cache 1x4': [3.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times)
     assert best.name == 'pt' and made == clear and by['bdpt'].seconds is None
-    points = {'pt', 'bdpt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'}
+    points = {'pt', 'cache 0.25x1', 'cache 1x1', 'cache 1x4'}
     best, by, made = _stub_choice(monkeypatch, {**rel, 'cache 1x4': 0.04}, times)
     assert set(made) >= points
     best, by, made = _stub_choice(monkeypatch, {**rel, 'cache 1x4': 0.04}, {**times, 'cache 0.25x1': [6.0, 2.0]})
@@ -825,6 +843,27 @@ def test_a_clear_pt_times_pt_and_the_cheapest_bidirectional_candidate_only(monke
     maps = {'cache 0.25x2': half, 'cache 0.25x4': half[::-1]}
     best, by, made = _stub_choice(monkeypatch, rel, times | {'per pixel': [2.5]}, maps)
     assert set(made) >= points
+
+
+def test_auto_times_only_what_could_win(monkeypatch):
+    """auto.time_points: after pt and the probe (cache 1/4 x 1, 1.2 s), a cost-model point or
+    candidate is timed only while some candidate it decides could still be chosen at the least
+    time it could take. veach-bidir's case: vcm (v 0.47) could beat pt (1.1) at the probe's time
+    (1.77) but not at the classic estimator's (2.0: 1.06), which vcm behind delta (v 0.32, 2.5 s:
+    1.25) beats: vcm is never timed, nor the caches (v 1: 0.83 at most); vcm behind delta is
+    chosen. With a merging cache that could win (v 0.2), the plain caches' points, the merging
+    one's, the classic estimator's and vcm's are timed, and it is chosen, timed. Planted: vcm's
+    least time the probe's, no bound at all, or the merging points left out: each fails."""
+    from bdpt_jit import auto
+    rel = {'pt': 1.0, 'bdpt': 0.5, 'vcm': 0.47, auto.BEHIND_DELTA: 0.32}
+    times = {'pt': [1.0], 'cache 0.25x1': [1.2], 'bdpt': [2.0], auto.BEHIND_DELTA: [2.5], 'vcm': [7.0],
+             'cache 1x1': [1.5], 'cache 1x4': [2.5], 'vcm cache 0.25x1': [1.5], 'vcm cache 0.5x2': [2.0]}
+    best, by, made = _stub_choice(monkeypatch, rel, times, merging=True)
+    assert best.name == auto.BEHIND_DELTA and set(made) == {'pt', 'cache 0.25x1', 'bdpt', auto.BEHIND_DELTA}
+    assert by['vcm'].seconds is None and by['cache 1x1'].seconds is None and by['vcm cache 1x1'].seconds is None
+    best, by, made = _stub_choice(monkeypatch, {**rel, 'vcm cache 0.5x2': 0.2}, times, merging=True)
+    assert {'cache 1x1', 'cache 1x4', 'vcm cache 0.25x1', 'bdpt', 'vcm'} <= set(made)
+    assert best.name == 'vcm cache 0.5x2' and best.timed and best.seconds == 2.0
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
