@@ -62,7 +62,7 @@ DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchm
 LIGHT_PATHS = (0.25, 0.5, 1.0, 2.0)     # the caches' light subpaths per camera sample (n_L / n)
 CONNECTIONS = (1, 2, 4, 8)              # and cached vertices per camera vertex (c)
 TIMED_CACHES = ((0.25, 1), (1.0, 1), (1.0, 4))   # the caches whose time is measured (the cost model's)
-TIMED_MERGING = (0.25, 1)       # the merging cache whose time is measured (with vcm's: the merges' cost model)
+TIMED_MERGING = ((0.25, 1), (1.0, 1))     # the merging caches whose time is measured (the merges' cost model)
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
 PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
@@ -105,7 +105,7 @@ class Trial:
         self.pixel_counts = None        # and its pixel_counts.PixelCounts
         self.pick = None                # and per pixel the index of its cache in parts
         self.merge_share = None         # per crop pixel, the share of the pilots' image that merges carried
-        self.renders = 0                # its trial renders, the untimed first one included (``trial_seed``)
+        self.renders = 0                # its trial renders (``trial_seed``)
         self.image_sum = None           # their images summed (the mean of the colour channels at the
         #                                 pilots' film's pixels: ``add_image``)
         self.images = 0                 # how many
@@ -197,20 +197,17 @@ def trial_spp(sensor):
 _WARM = set()       # the trial renders (settings, crop, spp) run once in this process (time_trial)
 
 
-def warm_up(render):
-    """``render()``, untimed, and its kernels waited for (time_trial)."""
-    render()
-    dr.sync_thread()
-
-
 def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
     kernels' time in a render of ``spp`` (trial_spp), the least over its timings. The first
-    trial render of a configuration, scene and size in a process runs once untimed before: its
-    kernels' first run in a fresh process took up to twice the time of every later one (the
-    caustic scene at 128 x 128 after the pilot: bdpt 0.0236 against 0.0125 s a spp, vcm 0.0355
-    against 0.0180, the light vertex cache 1 x 4 alike), which chose the caches and pt over them
-    in one-shot renders (the command's)."""
+    trial render of a configuration, scene and size in a process is two timings: a kernel's
+    first run in a fresh process took up to twice the time of later ones (the caustic scene at
+    128 x 128 after the pilot: bdpt 0.0236 against 0.0125 s a spp, vcm 0.0355 against 0.0180,
+    the light vertex cache 1 x 4 alike), which chose the caches and pt over them in one-shot
+    renders (the command's). That first run was untimed until the twenty-first session; but a
+    later run is as often the slow one (the caustic at 128 x 128, one process: first over second
+    0.52-2.06 in 9 configurations; veach-bidir at 256 x 256: 0.61-1.84), so both count, the
+    least is the time, and two that agree settle it (``settled``: no re-timing in a close call)."""
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
     key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
@@ -220,9 +217,14 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
         add_image(trial, integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp), spp)
     if key not in _WARM:
         _WARM.add(key)
-        warm_up(render)
-    t = kernel_seconds(render)
-    t = max(t, 1e-9) / spp
+        add_timing(trial, kernel_seconds(render) / spp)
+    add_timing(trial, kernel_seconds(render) / spp)
+
+
+def add_timing(trial, t):
+    """One timing of ``trial``, ``t`` seconds per spp: its time the least so far, ``second`` the
+    second least."""
+    t = max(t, 1e-12)
     if trial.timed:
         trial.second = min(max(trial.seconds, t), trial.second or np.inf)
     trial.seconds = t if not trial.timed else min(trial.seconds, t)
@@ -231,7 +233,7 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
 
 
 def trial_seed(seed, k):
-    """The seed of a trial's render ``k`` (0, 1, ...: the untimed first one included): odd offsets
+    """The seed of a trial's render ``k`` (0, 1, ...): odd offsets
     over TRIAL_SEED, where the pilots' are even (``pilot``), so that each render's image is
     independent of the pilots' samples and of the trial's other renders (``denominator``)."""
     return seed + TRIAL_SEED + 2 * k + 1
@@ -309,8 +311,8 @@ def cost_model(trials):
     """The caches' seconds per sample per pixel, t = a + b n_L/n + d c, fitted by least squares to
     the timed caches' times (b, d at least 0: noise must not make a cost negative), for the caches
     not timed; a merging cache's, t + e + g n_L/n (its gathers find more light vertices as n_L
-    grows; e, g at least 0), fitted to vcm's extra time over bdpt's (n_L/n = 1) and each timed
-    merging cache's over its cache's t. At first the points are TIMED_CACHES and TIMED_MERGING;
+    grows; e, g at least 0), fitted to each timed merging cache's extra time over its cache's t
+    (and vcm's over the classic estimator's, n_L/n = 1, where both were timed). At first the points are TIMED_CACHES and TIMED_MERGING;
     each cache timed later (the best by the model, before it is chosen) joins them. From the
     first three alone a noisy point set a slope to 0 (on veach-bidir the cache 1 x 4 timed below
     1 x 1, so connections cost nothing), and each cache with more connections was timed in turn
@@ -454,7 +456,9 @@ def point_groups(trials):
     classic estimator's trial; vcm's and BEHIND_DELTA's, each after the classic estimator's (its
     time is their least); the plain caches of TIMED_CACHES (the cost model's points: every
     cache's and every per-pixel candidate's time); and where merging caches are offered,
-    TIMED_MERGING, then the classic estimator's and vcm's (the merges' extra time). Each bound is
+    TIMED_MERGING (the merges' extra time at two n_L/n: not vcm's over the classic estimator's,
+    which on veach-bidir at 256 x 256 cost 0.46-0.62 s a spp against the merging cache 1 x 1's
+    ~0.3, and the classic estimator's besides). Each bound is
     the score at the least time the candidate could take (``least_time``), a per-pixel
     candidate's from the mean of the least v per pixel over the caches (over PER_PIXEL)."""
     pt = trials[0]
@@ -469,20 +473,24 @@ def point_groups(trials):
         out.append((max([upper(tr, t, pt) for tr in caches] + [pixel]), plain))
         merging = [tr for tr in caches if tr.merges]
         if merging:
-            point = [tr for tr in merging if tr.cache == TIMED_MERGING] + [named['bdpt'], named['vcm']]
-            out.append((max([upper(tr, t, pt) for tr in merging] + [pixel]), point))
+            point = [tr for point in TIMED_MERGING for tr in merging if tr.cache == point]
+            t_m = least_time(merging[0], trials)
+            out.append((max([upper(tr, t_m, pt) for tr in merging] + [pixel]), point))
     return out
 
 
 def least_time(trial, trials):
     """The least seconds per spp ``trial`` could take, from the timed ones: pt's and the probe's
-    (``probe``: each bidirectional candidate does its work and more), and for vcm's and
-    BEHIND_DELTA's the classic estimator's too (they merge besides)."""
+    (``probe``: each bidirectional candidate does its work and more); for vcm's and
+    BEHIND_DELTA's the classic estimator's too (they merge besides), and for a merging cache the
+    merging cache of the fewest light subpaths and one connection's."""
     named = {tr.name: tr for tr in trials}
     t = max(named['pt'].seconds or 0.0 if 'pt' in named else 0.0, probe(trials).seconds or 0.0)
-    bdpt = named.get('bdpt')
-    if trial.counts[2] > 0 and trial.cache is None and bdpt is not None and bdpt.timed:
-        t = max(t, bdpt.seconds)
+    if trial.merges:
+        least = named.get('bdpt') if trial.cache is None else \
+            next((tr for tr in trials if tr.merges and tr.cache == (min(LIGHT_PATHS), 1)), None)
+        if least is not None and least.timed:
+            t = max(t, least.seconds)
     return t
 
 
