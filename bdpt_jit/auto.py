@@ -467,15 +467,14 @@ def point_groups(trials):
     out = [(upper(named[name], least_time(named[name], trials), pt), [named['bdpt'], named[name]])
            for name in ('bdpt', 'vcm', BEHIND_DELTA) if name in named]
     if caches:
-        t = least_time(caches[0], trials)
-        pixel = per_pixel_bound(caches, t)
+        pixel = per_pixel_bound(caches, least_time(probe(trials), trials))
+        bound = {tr.name: upper(tr, least_time(tr, trials), pt) for tr in caches}
         plain = [tr for tr in caches if not tr.merges and tr.cache in TIMED_CACHES]
-        out.append((max([upper(tr, t, pt) for tr in caches] + [pixel]), plain))
+        out.append((max(list(bound.values()) + [pixel]), plain))
         merging = [tr for tr in caches if tr.merges]
         if merging:
             point = [tr for point in TIMED_MERGING for tr in merging if tr.cache == point]
-            t_m = least_time(merging[0], trials)
-            out.append((max([upper(tr, t_m, pt) for tr in merging] + [pixel]), point))
+            out.append((max([bound[tr.name] for tr in merging] + [pixel]), point))
     return out
 
 
@@ -485,7 +484,7 @@ def least_time(trial, trials):
     BEHIND_DELTA's the classic estimator's too (they merge besides), and for a merging cache the
     merging cache of the fewest light subpaths and one connection's."""
     named = {tr.name: tr for tr in trials}
-    t = max(named['pt'].seconds or 0.0 if 'pt' in named else 0.0, probe(trials).seconds or 0.0)
+    t = max((named['pt'].seconds or 0.0) if 'pt' in named else 0.0, probe(trials).seconds or 0.0)
     if trial.merges:
         least = named.get('bdpt') if trial.cache is None else \
             next((tr for tr in trials if tr.merges and tr.cache == (min(LIGHT_PATHS), 1)), None)
