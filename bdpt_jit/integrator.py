@@ -158,14 +158,15 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         with auto.segment_weights."""
         from . import auto
         base = {k: v for k, v in self.settings.items() if v is not None}
+        governs = [auto.horizon(spp, self.merge_iteration)]       # the spp the next decision governs
 
         def make(settings, pixel_counts=None):
             integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
             integ.pixel_counts = pixel_counts
-            # pilots and trials at the render's merging iteration so far (merge.py: the radius
-            # shrinks with it): a later decision predicts and times the merges at the radius the
-            # next segment has, not at the first iteration's
-            integ.merge_iteration = self.merge_iteration
+            # pilots and trials at the radius of the iterations the decision governs (merge.py:
+            # it shrinks with them; auto.pilot_iteration), not at the next one's (a segment's
+            # integrator is given the render's own count: auto_segment)
+            integ.merge_iteration = auto.pilot_iteration(self.merge_iteration, governs[0], self.settings['radius_alpha'])
             return integ
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)
@@ -191,6 +192,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 segments[-1]['info']['interrupted'] = True
                 break
             t1 = _time.perf_counter()
+            governs[0] = auto.horizon(spp - int(round(sum(seg['spp'] for seg in segments))), self.merge_iteration)
             best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]

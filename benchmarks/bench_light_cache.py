@@ -113,35 +113,44 @@ def equal_time(scene, integ, budget, batch_spp, seed0=0):
     return acc / spp, spp, time.perf_counter() - t0
 
 
-def equal_time_auto(scene, integ, budget, batch_spp, seed0=0):
-    """equal_time for technique auto: its first batch chooses (the pilot and the trials count in
-    the budget), the other batches render the chosen configuration; also returns the choice."""
+def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
+    """equal_time for technique auto, rendered as ``bdpt-jit render --time`` renders it: one
+    render of 2^30 samples per pixel in passes of ``batch_spp``, stopped by its should_stop hook
+    once ``budget`` seconds have passed (as equal_time's batches: the pass under way finishes),
+    its choices (the pilots and the trials) and any later ones inside; a fresh integrator
+    (``props``) each run, as its merging radius shrinks over its renders. Also returns what it
+    chose (its segments' choices joined by ' + '). Until the twenty-first session the first batch
+    chose and the chosen configuration rendered the other batches: that choice governed the
+    whole budget while it took the merges' radius of its own batch (auto.horizon)."""
+    from bdpt_jit.passes import RenderHooks
+    integ = mi.load_dict(props)
     t0 = time.perf_counter()
-    img = mi.render(scene, integrator=integ, spp=batch_spp, seed=seed0)
-    choice = integ.last_render_info['auto']
-    chosen = integ.last_chosen          # the chosen configuration (a per-pixel one with its maps)
-    acc, spp, b = np.array(img, np.float64)[:, :, :3] * batch_spp, batch_spp, 1
-    while time.perf_counter() - t0 < budget:
-        img = mi.render(scene, integrator=chosen, spp=batch_spp, seed=seed0 + b)
-        acc = acc + np.array(img, np.float64)[:, :, :3] * batch_spp
-        spp += batch_spp
-        b += 1
-    return acc / spp, spp, time.perf_counter() - t0, choice['chosen']
+    integ.hooks = RenderHooks(should_stop=lambda: time.perf_counter() - t0 >= budget)
+    img = mi.render(scene, integrator=integ, spp=1 << 30, seed=seed0)
+    secs = time.perf_counter() - t0
+    info = integ.last_render_info
+    size = scene.sensors()[0].film().crop_size()
+    spp = info['samples'] / (int(size[0]) * int(size[1]))
+    chosen = ' + '.join(d['chosen'] for d in info['auto']['decisions'])
+    return np.array(img, np.float64)[:, :, :3], spp, secs, chosen
 
 
 def prepare(args, name):
     """A contestant: its scene and integrator, warmed up (the first render compiles its kernels)."""
-    scene, integ = load(args.scene, args.res, args.max_depth, contestant(name, args.max_depth), args.define)
+    props = contestant(name, args.max_depth)
+    if name == 'auto':          # passes of --batch-spp (equal_time_auto)
+        props['samples_per_pass'] = args.batch_spp * args.res * args.res
+    scene, integ = load(args.scene, args.res, args.max_depth, props, args.define)
     t0 = time.perf_counter()
     dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
-    return dict(name=name, scene=scene, integ=integ, warm=time.perf_counter() - t0,
+    return dict(name=name, scene=scene, integ=integ, props=props, warm=time.perf_counter() - t0,
                 rels=[], spps=[], sps=[], chosen=[])
 
 
 def run_once(args, c, r, ref):
     """Equal-time run ``r`` of contestant ``c`` (seeds of its own: 1000 r + batch)."""
     if c['name'] == 'auto':
-        img, spp, secs, chosen = equal_time_auto(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=1000 * r)
+        img, spp, secs, chosen = equal_time_auto(c['scene'], c['props'], args.budget, args.batch_spp, seed0=1000 * r)
         c['chosen'].append(chosen)
     else:
         img, spp, secs = equal_time(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=1000 * r)

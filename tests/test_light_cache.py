@@ -568,17 +568,18 @@ def test_per_pixel_maps_of_a_large_crop():
     np.testing.assert_array_equal(conn.ravel(), np.array([1, 4])[out[0].pick][near])
 
 
-def test_auto_decides_again_at_the_render_s_merging_radius(monkeypatch):
-    """A later decision's pilots and trials are made at the render's merging iteration so far
-    (the radius shrinks with it: merge.py), so that it predicts and times the merges at the
-    radius the next segment has; the first decision of a fresh integrator at iteration 0.
-    REDECIDE made tiny and the later choices forced to vcm, whose segments advance the
-    iteration. Planted: the integrators made at iteration 0, fails."""
+def test_auto_decides_at_the_merging_radius_of_the_samples_it_governs(monkeypatch):
+    """A decision's pilots and trials merge at the radius of the iterations it governs
+    (auto.horizon, auto.pilot_iteration: the radius shrinks with the iterations, merge.py), from
+    the render's merging iteration so far; the segments merge at the render's own count. REDECIDE
+    made tiny and the later choices forced to vcm, whose segments advance the iteration. Planted:
+    the integrators made at the render's iteration (the first decision's at 0), or the segments
+    at the pilots' iteration, fails."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'REDECIDE', 1e-6)
     scene = load_scene('caustic.xml', 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
-    seen, rechoose, pilot_group = [], auto.rechoose, auto.pilot_group
+    seen, hs, rechoose, pilot_group, horizon = [], [], auto.rechoose, auto.pilot_group, auto.horizon
 
     def forced_rechoose(make, trials, *args):
         rechoose(make, trials, *args)
@@ -590,16 +591,38 @@ def test_auto_decides_again_at_the_render_s_merging_radius(monkeypatch):
     def recorded_pilot_group(make, *args):
         def made(settings, *rest):
             out = make(settings, *rest)
-            seen.append((out.merge_iteration, integ.merge_iteration))
+            seen.append((out.merge_iteration, integ.merge_iteration, hs[-1]))
             return out
         return pilot_group(made, *args)
     monkeypatch.setattr(auto, 'rechoose', forced_rechoose)
     monkeypatch.setattr(auto, 'pilot_group', recorded_pilot_group)
+    monkeypatch.setattr(auto, 'horizon', lambda *a: hs.append(horizon(*a)) or hs[-1])
     mi.render(scene, integrator=integ, spp=64, seed=5)
     decisions = integ.last_render_info['auto']['decisions']
     assert [d['chosen'] for d in decisions[1:]] == ['vcm'] * (len(decisions) - 1) and len(decisions) >= 3
-    assert all(own == parent for own, parent in seen) and seen[0][0] == 0
-    assert max(own for own, _ in seen) >= 1        # a decision after a merging segment
+    assert all(own == auto.pilot_iteration(parent, h, 0.75) for own, parent, h in seen)
+    assert seen[0][1:] == (0, 64) and seen[0][0] == auto.pilot_iteration(0, 64, 0.75) > 0
+    assert max(parent for _, parent, _ in seen) >= 1        # a decision after a merging segment
+    merged = sum(d['spp'] for d in decisions if 'vcm' in d['chosen'])
+    assert integ.merge_iteration == round(merged)
+
+
+def test_the_pilots_merging_iteration_is_the_harmonic_mean_of_the_etas():
+    """auto.pilot_iteration: the iteration (its first: the result plus 1) whose eta_i, which
+    falls as i^(alpha - 1), is the harmonic mean of the etas of the ``h`` iterations after
+    ``done`` (by brute force: within 3% or one iteration); the next one where the radius is
+    constant (alpha 1) or one iteration is governed. Planted: ``done`` returned, fails."""
+    from bdpt_jit import auto
+    for alpha in (0.75, 0.5, 0.9):
+        p = 1.0 - alpha
+        for done, h in ((0, 64), (0, 256), (100, 1500), (5, 3), (4096, 61440)):
+            i = np.arange(done + 1, done + h + 1, dtype=np.float64)
+            want = np.mean(i ** p) ** (1.0 / p)        # eta(want) = 1 / mean(1 / eta_i)
+            got = auto.pilot_iteration(done, h, alpha) + 1
+            assert abs(got - want) <= max(1.0, 0.03 * want), (alpha, done, h, got, want)
+    assert auto.pilot_iteration(7, 100, 1.0) == 7 and auto.pilot_iteration(7, 1, 0.75) == 7
+    assert auto.horizon(1 << 30, 0) == auto.FIRST_HORIZON and auto.horizon(40, 0) == 40
+    assert auto.horizon(1 << 30, 1000) == int((auto.REDECIDE - 1) * 1000)
 
 
 def test_auto_segment_plan():
