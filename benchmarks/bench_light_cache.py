@@ -125,7 +125,10 @@ def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
     from bdpt_jit.passes import RenderHooks
     integ = mi.load_dict(props)
     t0 = time.perf_counter()
-    integ.hooks = RenderHooks(should_stop=lambda: time.perf_counter() - t0 >= budget)
+    # (each pass waited for: Dr.Jit launches a pass's kernels and returns, so that without it the
+    # Python loop queues every pass before the budget's end is seen)
+    integ.hooks = RenderHooks(on_pass=lambda done, total: dr.sync_thread(),
+                              should_stop=lambda: time.perf_counter() - t0 >= budget)
     img = mi.render(scene, integrator=integ, spp=1 << 30, seed=seed0)
     secs = time.perf_counter() - t0
     info = integ.last_render_info
