@@ -706,7 +706,8 @@ def segment_spp(best, render_s, decided_s, spp_left, index, seconds=None):
 
 
 def horizon(spp_left, done):
-    """The samples per pixel a decision governs (its merges are predicted at their radius there:
+    """The samples per pixel a decision governs, ``done`` rendered and ``spp_left`` to come (its
+    merges are predicted at their radius there:
     ``pilot_iteration``): the render's samples left, at most the segment the decision starts.
     A first segment runs REDECIDE times as long as its decision took (``segment_spp``), and a
     decision costs about 16 spp of rendering wherever the image's size (two 4-spp pilots, which

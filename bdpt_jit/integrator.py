@@ -158,7 +158,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         with auto.segment_weights."""
         from . import auto
         base = {k: v for k, v in self.settings.items() if v is not None}
-        governs = [auto.horizon(spp, self.merge_iteration)]       # the spp the next decision governs
+        governs = [auto.horizon(spp, 0)]        # the spp the next decision governs
 
         def make(settings, pixel_counts=None):
             integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
@@ -192,7 +192,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 segments[-1]['info']['interrupted'] = True
                 break
             t1 = _time.perf_counter()
-            governs[0] = auto.horizon(spp - int(round(sum(seg['spp'] for seg in segments))), self.merge_iteration)
+            rendered = int(round(sum(seg['spp'] for seg in segments)))
+            governs[0] = auto.horizon(spp - rendered, rendered)
             best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]
