@@ -322,9 +322,24 @@ def cost_model(trials):
     intercept of a noisy fit can be negative: a 16 x 16 caustic on CI's machine predicted
     -9e-6 s). Without a timed merging cache (``time_points`` found none could win) the merging
     caches keep seconds None."""
+    fit = cost_fit(trials)
+    if fit is None:
+        return
+    for tr in trials:
+        if tr.cache is not None and not tr.timed and (fit['merging'] or not tr.merges):
+            lp, c = tr.cache
+            t = fit['a'] + fit['b'] * lp + fit['d'] * c + ((fit['e'] + fit['g'] * lp) if tr.merges else 0.0)
+            tr.seconds = max(t, fit['floor'])
+
+
+def cost_fit(trials):
+    """``cost_model``'s fit from the trials timed so far: {'a', 'b', 'd', 'e', 'g' (seconds per
+    spp, n_L/n and c as cost_model writes them), 'merging' (whether merging caches are modelled),
+    'floor' (no prediction below), 'points' (the timed caches' names)}, or None with fewer than
+    three timed caches that do not merge. In last_render_info['auto']['cost_model']."""
     plain = [(tr.cache, tr.seconds) for tr in trials if tr.timed and tr.cache is not None and not tr.merges]
     if len({cache for cache, _ in plain}) < 3:
-        return
+        return None
     a, b, d = nonnegative_fit([(1.0, lp, c) for (lp, c), _ in plain], [t for _, t in plain], free=1)
     named = {tr.name: tr.seconds for tr in trials if tr.timed}
     extra = [(1.0, named['vcm'] - named['bdpt'])] if 'vcm' in named and 'bdpt' in named else []
@@ -335,12 +350,10 @@ def cost_model(trials):
     e = g = 0.0
     if len({lp for lp, _ in extra}) >= 2:           # merges at two n_L/n at least
         e, g = nonnegative_fit([(1.0, lp) for lp, _ in extra], [x for _, x in extra], free=0)
-    merging = any(tr.timed and tr.merges and tr.cache is not None for tr in trials)
-    floor = least_time(probe(trials), trials)       # (a free intercept can go below)
-    for tr in trials:
-        if tr.cache is not None and not tr.timed and (merging or not tr.merges):
-            lp, c = tr.cache
-            tr.seconds = max(a + b * lp + d * c + ((e + g * lp) if tr.merges else 0.0), floor)
+    return {'a': float(a), 'b': float(b), 'd': float(d), 'e': float(e), 'g': float(g),
+            'merging': any(tr.timed and tr.merges and tr.cache is not None for tr in trials),
+            'floor': least_time(probe(trials), trials),         # (a free intercept can go below)
+            'points': [tr.name for tr in trials if tr.timed and tr.cache is not None]}
 
 
 def nonnegative_fit(rows, values, free):

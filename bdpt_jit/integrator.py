@@ -174,6 +174,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         n_pixels = int(crop[0]) * int(crop[1])
         vpp = pilot(self, ctx, seed, max(256, n_pixels)) if ctx.strategies.trace_connect else 0.0
         best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp)
+        self.hooks.decided()
         decided_s, render_s, segments = _time.perf_counter() - t0, 0.0, []
         job = AutoRender(scene, sensor, seed, spp, n_pixels, evaluate)
         took = [decided_s]                      # each decision's seconds
@@ -195,6 +196,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             rendered = int(round(sum(seg['spp'] for seg in segments)))
             governs[0] = auto.horizon(spp - rendered, rendered)
             best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
+            self.hooks.decided()
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]
         image = self.combine_segments(segments, spp, n_pixels)
@@ -205,7 +207,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                                          'decisions': [{'chosen': seg['trial'].name, 'seconds': t, 'spp': seg['spp'],
                                                         'relmse_1spp': seg['trial'].rel_var, 'weight': seg['weight']}
                                                        for seg, t in zip(segments, took)],
-                                         'candidates': [tr.report() for tr in trials]}
+                                         'candidates': [tr.report() for tr in trials],
+                                         'cost_model': auto.cost_fit(trials)}
         return image
 
     def auto_segment(self, chosen, trial, job, k, spp, spp_before):

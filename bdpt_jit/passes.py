@@ -153,13 +153,20 @@ class RenderHooks:
     - ``on_pass(samples_done, samples_total)`` after each finished pass;
     - ``should_stop()`` before each pass after the first: True ends the render there, and the
       finished passes are developed as a render of that many samples (the light image
-      rescaled), with ``last_render_info['interrupted']`` set.
+      rescaled), with ``last_render_info['interrupted']`` set;
+    - ``on_decided()`` after each of technique auto's decisions (its pilots and trials), which
+      are not passes: a caller that times passes starts the next one's clock there.
 
     A Ctrl-C (KeyboardInterrupt) during a pass after the first has the same effect."""
 
-    def __init__(self, on_pass=None, should_stop=None):
+    def __init__(self, on_pass=None, should_stop=None, on_decided=None):
         self.on_pass = on_pass
         self.should_stop = should_stop
+        self.on_decided = on_decided
+
+    def decided(self):
+        if self.on_decided is not None:
+            self.on_decided()
 
     def passed(self, done, total):
         if self.on_pass is not None:

@@ -116,6 +116,28 @@ def test_time_budget(tmp_path):
     assert np.isfinite(img).all() and img.mean() > 0
 
 
+def test_time_budget_with_technique_auto(tmp_path):
+    """--time with technique auto: the choice (pilots and trials) and then passes until the
+    budget, each pass waited for before the budget is read (Dr.Jit returns before a pass's
+    kernels finish: a loop that did not wait queued every pass of 2^30 spp first); the summary
+    names the choice. The decision is no pass (RenderHooks.on_decided): the passes after it
+    fill the budget (planted: the clock not told, the render stopped after one pass)."""
+    out = tmp_path / 'auto.exr'
+    budget = 4.0
+    r = run_cli(CORNELL, '-D', 'res=16', '--time', str(budget), '--pass-spp', '1', '--technique', 'auto',
+                '-o', str(out), *VARIANT)
+    assert r.returncode == 0, r.stderr
+    img, _, header = read_exr(out)
+    render_s, longest = float(header['bdpt.render_time_s']), float(header['bdpt.longest_pass_s'])
+    decided = float(re.search(r'after ([0-9.]+) s of pilot and trials', header['bdpt.auto']).group(1))
+    assert render_s <= max(budget, decided + longest) + longest + 0.1, (render_s, decided, longest)
+    assert longest < decided, (longest, decided)      # no pass timed with the decision in it
+    if decided + 3 * longest < budget:      # room for passes: they fill it
+        assert render_s >= budget - longest - 0.1, (render_s, decided, longest)
+    assert header['bdpt.auto'].startswith('chose ') and float(header['bdpt.spp']) >= 1
+    assert np.isfinite(img).all()
+
+
 def test_time_passes_average_to_the_image(tmp_path):
     """--time accumulates an spp-weighted average; its first pass is --spp with the same seed."""
     out = tmp_path / 'one.exr'

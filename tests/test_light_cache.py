@@ -413,6 +413,12 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
         if len({x for x, _ in pts}) >= 2:
             e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf), method='bvls').x
     floor = max(t_pt, t['cache 0.25x1'])       # no cache below them (a noisy fit's intercept can go below 0)
+    fit = info['cost_model']                    # reported (auto.cost_fit) as fitted
+    assert (fit is None) == (not modelled)
+    if modelled:
+        assert np.allclose([fit[k] for k in 'abdeg'], [a, b, d, e, g], rtol=1e-5, atol=1e-9)
+        assert fit['merging'] == merges_modelled and fit['floor'] == floor
+        assert set(fit['points']) == {c['name'] for c in caches if c['timed']}
     for c in caches:
         if not c['timed']:
             if not (merges_modelled if 'vcm' in c['name'] else modelled):

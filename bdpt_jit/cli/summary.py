@@ -109,6 +109,11 @@ def _bdpt_statistics(info):
                              + ('not timed' if c['seconds_per_spp'] is None else f"{c['seconds_per_spp']:.3g}")
                              + (f" (misses {c['missed']:.1%})" if c['efficiency'] == 0 else '')
                              for c in a['candidates']))
+        fit = a.get('cost_model')
+        if fit:                             # auto.cost_fit
+            stats['auto'] += ("; cost model (s/spp): {a:.3g} + {b:.3g} n_L/n + {d:.3g} c".format(**fit)
+                              + (", merging + {e:.3g} + {g:.3g} n_L/n".format(**fit) if fit['merging'] else '')
+                              + f", from {', '.join(fit['points'])}")
     return stats
 
 
