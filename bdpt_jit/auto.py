@@ -451,7 +451,9 @@ def time_points(make, trials, scene, sensor, seed, spp):
     trial at a time, from the group of the highest bound, in the group's order: a group whose
     bound is at most the best score among the trials timed so far (``score``) is not timed
     further (a bound falls as the least times rise, and a timed trial's score rises as its time
-    falls). On veach-bidir vcm's trial (0.6 s a sample per pixel at 256 x 256, 3.6 times the
+    falls; the v of each is the one it has when the group is weighed: the trials' images move
+    the denominator, ``normalise``, by a few per cent, which could make a group left out
+    competitive again, and is accepted). On veach-bidir vcm's trial (0.6 s a sample per pixel at 256 x 256, 3.6 times the
     time of vcm behind delta, with v 0.47 against its 0.32) could not win and was timed in every
     decision: now the classic estimator's time (vcm's least) leaves it out."""
     while True:
