@@ -569,7 +569,7 @@ def clear_pt(make, trials, scene, sensor, seed, spp):
     if not ok(pt):
         return False
     for tr in (pt, cheap):          # (reported; ``ranked``'s)
-        tr.efficiency = 1.0 / max(tr.rel_var * max(tr.seconds, pt.seconds), 1e-30) if tr.rel_var is not None else None
+        tr.efficiency = upper(tr, tr.seconds, pt) / (PREFER_PT if tr is pt else 1.0) if tr.rel_var is not None else None
     return max((bound for bound, _ in point_groups(trials)), default=0.0) <= score(pt, pt)
 
 
