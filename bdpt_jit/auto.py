@@ -5,7 +5,7 @@ that a pilot render estimates for every candidate at once (moments.py; Grittmann
 SIGGRAPH 2022) and each candidate's measured time.
 
 1. The pilot: bdpt's classic estimator under the balance heuristic, PILOT_SPP samples per pixel
-   (camera samples only in the pixels the moment film keeps where the crop has more than
+   (LATTICE_PILOT_SPP and camera samples only in the pixels the moment film keeps where the crop has more than
    moments.MAX_PIXELS: integrator.lattice_step) with seeds of its own (``seed + TRIAL_SEED``),
    its weights and densities kept per family of sample counts (moments.FamilyMIS). From its samples, per pixel, each candidate's variance of a
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
@@ -55,6 +55,7 @@ import numpy as np
 
 TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
+LATTICE_PILOT_SPP = 2           # and in a crop larger than the moment film keeps (``pilot_spp``)
 TRIAL_SAMPLES = 1 << 15         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
@@ -99,6 +100,7 @@ class Trial:
         self.pilot_image = None         # and of their image (``denominator`` where no trial has rendered)
         self.own_var = None             # v over the pilots' own image (``denominator``'s weights)
         self.pilot_missed = []          # the missed share from each
+        self.pilot_spp = PILOT_SPP      # each pilot's samples per pixel (``pilot_spp``)
         self.efficiency = None          # 1 / (v t); 0 where it misses light
         self.pixel_var = None           # v per crop pixel, h x w (the pilots' mean), or per kept pixel of a lattice
         self.lattice = None             # (h, w, step) where the pilots' film keeps every step-th pixel (a large crop)
@@ -281,7 +283,7 @@ def denominator(trials, rounds=3):
     for r in range(rounds + 1):
         if r:
             v = {id(tr): float(np.mean(tr.pixel_V.reshape(-1) / den)) for tr in trials}
-        w = PILOT_SPP * len(first.pilot_missed) / positive(v[id(pilot)])
+        w = first.pilot_spp * len(first.pilot_missed) / positive(v[id(pilot)])
         num, w_sum = w * first.pilot_image, w
         for tr in timed:
             w = tr.image_spp / positive(v[id(tr)])
@@ -375,6 +377,23 @@ def nonnegative_fit(rows, values, free):
     return out
 
 
+def pilot_spp(sensor):
+    """A pilot's samples per pixel: PILOT_SPP, or LATTICE_PILOT_SPP in a crop of more pixels than
+    the moment film keeps (moments.MAX_PIXELS). There the pilot traces camera samples in the kept
+    pixels only but every light subpath of the classic estimator, one per sample of every pixel
+    (integrator.lattice_pass_state), and its light side is most of its cost: on veach-bidir at
+    256 x 256 the pilot merging everywhere took 1.6 s of kernels at 4 spp (the two pilots 1.7 of
+    a 4 s choice), where a plain 4-spp render of the same estimator took 2.1 s. Its kept pixels
+    still hold 2 MAX_PIXELS camera samples, half of a 128 x 128 pilot's. At 2 spp there: 0.9-1.0 s
+    for the two, and veach-bidir's error at 16 s 1.37 times the classic estimator's, from 1.55
+    (benchmarks/bench_light_cache.py, three runs each, one invocation each: docs/light-cache.md)."""
+    if sensor is None:
+        return PILOT_SPP
+    from .moments import MAX_PIXELS
+    crop = sensor.film().crop_size()
+    return PILOT_SPP if int(crop[0]) * int(crop[1]) <= MAX_PIXELS else LATTICE_PILOT_SPP
+
+
 def pilot(make, trials, scene, sensor, seed, index=0):
     """Pilot render ``index`` (0 for the first decision, 1, 2, ... for the later ones, seeds of
     their own): each trial's predicted relative MSE at one sample per pixel and the share it
@@ -397,11 +416,13 @@ def pilot_group(make, trials, behind_delta, scene, sensor, seed):
         settings.update(technique='vcm', merge_everywhere=not behind_delta)
     integ = make(settings)
     integ.moment_counts = [tr.counts for tr in trials]
-    integ.render(scene, sensor, seed=seed, spp=PILOT_SPP)
+    spp = pilot_spp(sensor)
+    integ.render(scene, sensor, seed=seed, spp=spp)
     film = integ.moment_film
-    image, V, missed = film.estimates(PILOT_SPP)
+    image, V, missed = film.estimates(spp)
     share = film.merged / np.maximum(np.abs(image), 1e-30)      # the merges' part of each pixel
     for k, tr in enumerate(trials):
+        tr.pilot_spp = spp
         tr.pilot_missed.append(float(missed[k]))
         tr.missed = float(np.mean(tr.pilot_missed))
         # per pixel, the pilots' mean: an h x w image, or a large crop's kept pixels (moments.MAX_PIXELS)

@@ -200,7 +200,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]
         image = self.combine_segments(segments, spp, n_pixels)
-        self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.PILOT_SPP, 'trial_spp': auto.trial_spp(sensor),
+        self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.pilot_spp(sensor), 'trial_spp': auto.trial_spp(sensor),
                                          'trial_s': decided_s, 'vertices_per_light_path': vpp,
                                          # (relmse_1spp: the v the segment's weight used; a per-pixel candidate
                                          # is built again at each decision, so 'candidates' may list a later one)

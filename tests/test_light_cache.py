@@ -955,6 +955,47 @@ def _sky_only(width, height):
                        'film': {'type': 'hdrfilm', 'width': width, 'height': height}}}
 
 
+def test_auto_pilots_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
+    """auto.pilot_spp: PILOT_SPP samples per pixel in a crop of up to moments.MAX_PIXELS pixels,
+    LATTICE_PILOT_SPP in a larger one (the lattice pilot, whose light side traces every pixel's
+    light subpaths). The pilot renders at that count and the moment film's estimates scale by
+    it (a V of the other count is off by their ratio); the denominator weighs the pilots'
+    image by their samples (an image of a given v and n spp has weight n / v). Planted: estimates
+    at PILOT_SPP, or the denominator's weight at PILOT_SPP: each fails."""
+    from bdpt_jit import auto, moments
+    assert auto.LATTICE_PILOT_SPP % 2 == 0 and auto.LATTICE_PILOT_SPP < auto.PILOT_SPP
+    for (w, h), want in {(128, 128): auto.PILOT_SPP, (129, 128): auto.LATTICE_PILOT_SPP}.items():
+        assert auto.pilot_spp(mi.load_dict(_sky_only(w, h)).sensors()[0]) == want, (w, h)
+    monkeypatch.setattr(moments, 'MAX_PIXELS', 64)          # the 16 x 16 box: a lattice of step 4
+    scene, seen = load_scene('cornell-box.xml', 16, 4), {}
+    real = moments.MomentFilm.estimates
+
+    def estimates(film, spp):
+        seen['estimates'] = spp
+        return real(film, spp)
+    monkeypatch.setattr(moments.MomentFilm, 'estimates', estimates)
+    made = []
+
+    def make(settings):
+        made.append(mi.load_dict({'type': 'bdpt', 'max_depth': 4, **settings}))
+        return made[-1]
+    trials = [auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0)), auto.Trial('bdpt', {}, (1.0, 1.0, 0.0))]
+    auto.pilot(make, trials, scene, scene.sensors()[0], 0)
+    assert made[0].last_render_info['spp'] == auto.LATTICE_PILOT_SPP == seen['estimates']
+    assert trials[0].pilot_spp == auto.LATTICE_PILOT_SPP
+    film = made[0].moment_film
+    assert film.step == 4 and trials[0].pixel_V.size == film.count and np.all(np.isfinite(trials[0].pixel_V))
+    # the denominator: one pilot of image a (v 0.5), one trial render of image b (v 0.25, 1 spp)
+    for tr in trials:
+        tr.pilot_image, tr.pixel_V, tr.lattice = np.full(film.count, 2.0), np.full(film.count, 1.0), trials[0].lattice
+        tr.own_var, tr.pilot_missed, tr.pilot_spp = 0.5, [0.0], 2
+    trials[1].image_sum, trials[1].images, trials[1].image_spp = np.full(film.count, 5.0), 1, 1
+    den = auto.denominator(trials, rounds=0)
+    pilot_w, trial_w = 2 / 0.5, 1 / 0.5         # v: both trials' own_var (rounds=0)
+    want = ((pilot_w * 2.0 + trial_w * 5.0) / (pilot_w + trial_w)) ** 2 + auto.DENOM
+    np.testing.assert_allclose(den, want, rtol=1e-12)
+
+
 def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
     """A timed trial renders TRIAL_SPP samples per pixel of a crop of up to TRIAL_SAMPLES /
     TRIAL_SPP pixels, TRIAL_SAMPLES / pixels (at least 1) in a larger one, over the whole crop
