@@ -5,8 +5,8 @@ that a pilot render estimates for every candidate at once (moments.py; Grittmann
 SIGGRAPH 2022) and each candidate's measured time.
 
 1. The pilot: bdpt's classic estimator under the balance heuristic, PILOT_SPP samples per pixel
-   (LATTICE_PILOT_SPP and camera samples only in the pixels the moment film keeps where the crop has more than
-   moments.MAX_PIXELS: integrator.lattice_step) with seeds of its own (``seed + TRIAL_SEED``),
+   (where the crop has more than moments.MAX_PIXELS, LATTICE_PILOT_SPP, and camera samples only
+   in the pixels the moment film keeps: pilot_spp, integrator.lattice_step) with seeds of its own (``seed + TRIAL_SEED``),
    its weights and densities kept per family of sample counts (moments.FamilyMIS). From its samples, per pixel, each candidate's variance of a
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
@@ -380,7 +380,7 @@ def nonnegative_fit(rows, values, free):
 def pilot_spp(sensor):
     """A pilot's samples per pixel: PILOT_SPP, or LATTICE_PILOT_SPP in a crop of more pixels than
     the moment film keeps (moments.MAX_PIXELS). There the pilot traces camera samples in the kept
-    pixels only but every light subpath of the classic estimator, one per sample of every pixel
+    pixels only (but in spectral variants: integrator.lattice_step) and every light subpath of the classic estimator, one per sample of every pixel
     (integrator.lattice_pass_state), and its light side is most of its cost: on veach-bidir at
     256 x 256 the pilot merging everywhere took 1.6 s of kernels at 4 spp (the two pilots 1.7 of
     a 4 s choice), where a plain 4-spp render of the same estimator took 2.1 s. Its kept pixels

@@ -152,6 +152,9 @@ class Contestant:
     progressive: bool = False      # a fresh integrator for every render: `vcm` and `vm` shrink their merging radius
                                    # over every pass of one integrator object, so a reused one would carry the radius
                                    # of earlier renders into the next (renders would not be independent draws)
+    budgeted: bool = False         # at a budget, one render stopped once the budget has passed (``render_budgeted``),
+                                   # as `bdpt-jit render --time` renders: technique auto, whose time is not linear
+                                   # in its spp (each render decides afresh, and may choose otherwise)
 
 
 CONTESTANTS = [
@@ -168,7 +171,7 @@ CONTESTANTS = [
                progressive=True),
     Contestant('vm', 'bdpt vm', {'type': 'bdpt', 'technique': 'vm'}, progressive=True),
     # issue 22's efficiency-aware choice: each render chooses again (its pilot and trials in its time)
-    Contestant('auto', 'bdpt auto', {'type': 'bdpt', 'technique': 'auto'}, progressive=True),
+    Contestant('auto', 'bdpt auto', {'type': 'bdpt', 'technique': 'auto'}, progressive=True, budgeted=True),
     Contestant('path', 'Mitsuba path', {'type': 'path'}, replica=True),
     Contestant('ptracer', 'Mitsuba ptracer', {'type': 'ptracer'}, replica=True),
 ]
@@ -180,6 +183,7 @@ MITSUBA06_CONTESTANTS = [
 ]
 ALL_CONTESTANTS = CONTESTANTS + MITSUBA06_CONTESTANTS
 BASELINE = 'path'
+BUDGET_PASS_SPP = 4                 # a budgeted contestant's passes (Runner.render_budgeted): its hook's steps
 REQUIRED = ('bdpt', BASELINE)       # the summary and the equal-sample point are relative to these
 
 
@@ -559,15 +563,19 @@ class Runner:
         self.overhead06 = []                                  # 0.6: process start + scene loading (s), not timed
         self.choices = {}                                     # (key, spp) -> technique auto's decisions, each render
 
-    def _render(self, key, spp):
+    def _render(self, key, spp, budget=None):
+        """(seconds, image, spp rendered) of one render of ``key``: ``spp`` samples per pixel, or where
+        the contestant is ``budgeted`` and a ``budget`` is given, as many as it renders in it."""
         self.seed += 1
         c = self.by_key[key]
+        if c.budgeted and budget is not None:
+            return self.render_budgeted(key, spp, budget)
         if c.renderer == 'mitsuba06':
             # its own render time (scene loading left out, as mi.load_file is for Mitsuba 3); the seed
             # makes each render independent (mitsuba06.SEED_EDIT)
             t, wall, img = self.m06.render(self.scene06, c.props['type'], spp, seed=self.seed)
             self.overhead06.append(wall - t)
-            return t, to_np(img)
+            return t, to_np(img), spp
         # a progressive contestant gets a fresh integrator (its radius from the first pass), built untimed
         integ = make_integrator(c, self.spec.max_depth) if c.progressive else self.integrators[key]
         dr.sync_thread()
@@ -576,33 +584,66 @@ class Runner:
         dr.eval(img)
         dr.sync_thread()
         t = time.perf_counter() - t0
+        self.note_choice(key, spp, integ)
+        return t, to_np(img), spp
+
+    def note_choice(self, key, spp, integ):
+        """technique auto's decisions in a render of ``key`` (its segments' choices joined by +)."""
         auto = (getattr(integ, 'last_render_info', None) or {}).get('auto')
         if auto:
             self.choices.setdefault((key, spp), []).append(
                 ' + '.join(d['chosen'] for d in auto['decisions']) or auto['chosen'])
-        return t, to_np(img)
 
-    def stage(self, spp_of):
+    def render_budgeted(self, key, spp, budget):
+        """A budgeted contestant's render: 2^30 samples per pixel in passes of BUDGET_PASS_SPP,
+        stopped by its should_stop hook once ``budget`` seconds have passed (the pass under way
+        finishes, as the command's --time does), each pass waited for (Dr.Jit returns before a
+        pass's kernels finish: without the wait every pass is queued before the hook sees the
+        budget's end). Its spp: the samples it rendered over the pixels (a whole number where it
+        stopped between passes; the mean of a point's renders is reported, rounded). Its choices
+        are noted under ``spp``, the point's requested count, until ``stage`` moves them."""
+        from bdpt_jit.passes import RenderHooks
+        w, h = (int(v) for v in self.scene.sensors()[0].film().crop_size())
+        integ = make_integrator(self.by_key[key], self.spec.max_depth, samples_per_pass=BUDGET_PASS_SPP * w * h)
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        integ.hooks = RenderHooks(on_pass=lambda done, total: dr.sync_thread(),
+                                  should_stop=lambda: time.perf_counter() - t0 >= budget)
+        img = mi.render(self.scene, integrator=integ, spp=1 << 30, seed=self.seed)
+        dr.eval(img)
+        dr.sync_thread()
+        t = time.perf_counter() - t0
+        self.note_choice(key, spp, integ)
+        return t, to_np(img), integ.last_render_info['samples'] / (w * h)
+
+    def stage(self, spp_of, budget=None):
         """One point per contestant: a warm-up render (its compile recorded from Dr.Jit's kernel
         history), then `repeats` timed renders, contestants interleaved so that a change in the
         machine's load spreads over all of them. Errors average every render (warm-up included:
-        all are independent); the time is the median of the timed ones."""
-        out = {}
+        all are independent); the time is the median of the timed ones. A budgeted contestant
+        renders ``budget`` seconds where one is given (``render_budgeted``): its spp is the mean of
+        its renders', rounded."""
+        out, spps = {}, {}
         for key, spp in spp_of.items():
             dr.set_flag(dr.JitFlag.KernelHistory, True)
             dr.kernel_history_clear()
-            wall, img = self._render(key, spp)
+            wall, img, done = self._render(key, spp, budget)
             hist = dr.kernel_history()
             dr.set_flag(dr.JitFlag.KernelHistory, False)
-            self.compile[key].append(dict(kernel_summary(hist), spp=spp, warmup_s=wall))
+            self.compile[key].append(dict(kernel_summary(hist), spp=done, warmup_s=wall))
             out[key] = {'spp': spp, 'times': [], 'errs': [self.measure(img, key)], 'warmup_s': wall}
+            spps[key] = [done]
         for _ in range(self.s.repeats):
             for key, spp in spp_of.items():
-                t, img = self._render(key, spp)
+                t, img, done = self._render(key, spp, budget)
                 out[key]['times'].append(t)
                 out[key]['errs'].append(self.measure(img, key))
+                spps[key].append(done)
                 self.images[(key, spp)] = img
         for key, p in out.items():
+            if self.by_key[key].budgeted and budget is not None:
+                self.rekey(key, p['spp'], int(round(float(np.mean(spps[key])))))
+                p['spp'] = int(round(float(np.mean(spps[key]))))
             e = np.array(p.pop('errs'))
             n = len(e)
             p.update(time=statistics.median(p['times']), mse=float(e[:, 0].mean()), rel=float(e[:, 1].mean()),
@@ -610,6 +651,12 @@ class Runner:
                      rel_se=float(e[:, 1].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0, renders=n,
                      flip=float(e[:, 2].mean()), flip_se=float(e[:, 2].std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0)
         return out
+
+    def rekey(self, key, old, new):
+        """A budgeted point's image and choices, kept under its requested spp, moved to the spp it rendered."""
+        for store in (self.images, self.choices):
+            if (key, old) in store:
+                store[(key, new)] = store.pop((key, old))
 
     def measure(self, img, key):
         """(MSE, relMSE, FLIP) of a contestant's render against its reference."""
@@ -638,7 +685,7 @@ class Runner:
             for key in keys:
                 a, b = self.fit(self.points[key])
                 spp_of[key] = max(int(round((budget - a) / b)), 1)
-            for key, p in self.stage(spp_of).items():
+            for key, p in self.stage(spp_of, budget).items():
                 self.points[key].append(dict(p, stage=f'budget {budget:g} s'))
             log(f'{self.spec.key}: budget {budget:g} s: ' + ', '.join(
                 f"{k} {self.points[k][-1]['spp']} spp {self.points[k][-1]['time']:.2f} s" for k in keys))
@@ -646,7 +693,7 @@ class Runner:
         budget = self.s.budgets[-1]
         spp_of = {}
         for key in keys:
-            if abs(self.points[key][-1]['time'] / budget - 1) > 0.2:
+            if abs(self.points[key][-1]['time'] / budget - 1) > 0.2 and not self.by_key[key].budgeted:
                 a, b = self.fit(self.points[key])
                 spp = max(int(round((budget - a) / b)), 1)
                 if spp != self.points[key][-1]['spp']:

@@ -14,7 +14,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from compare_lib import BASELINE, QUOTABLE, EPS_REL, contestant_settings  # noqa: E402
+from compare_lib import BASELINE, BUDGET_PASS_SPP, QUOTABLE, EPS_REL, contestant_settings  # noqa: E402
 
 # issue 15's equal-time targets for `vcm` (relMSE ratios): on scenes with specular-diffuse-specular paths, at most
 # VCM_CAUSTIC of path's; on scenes without, at most VCM_PLAIN times bdpt's
@@ -347,7 +347,9 @@ def auto_lines(results, contestants):
             f"most {AUTO_BIDIR:g}x path's where a bidirectional contestant beats path, {AUTO_PT:g}x where path is "
             f"best, and within {AUTO_BEST:g}x of the best fixed contestant ({', '.join(FIXED)}, those run). "
             "'auto chose': each render at the equal-time point (a render that decided again lists its segments' "
-            "choices joined by +).", '', auto_rows(results, contestants), '']
+            "choices joined by +). At each budget `auto` renders as `bdpt-jit render --time` does, until the budget "
+            "has passed (its time not linear in its spp: each render decides afresh and may choose otherwise).", '',
+            auto_rows(results, contestants), '']
 
 
 def scene_file(spec):
@@ -385,6 +387,9 @@ def contestant_text(c):
         text += ', ' + ', '.join(f'{k} {v:g}' for k, v in extra.items()) + ' by default'
     if c.progressive:
         text += ', a fresh integrator per render'
+    if c.budgeted:
+        text += (f', at a budget one render stopped once the budget has passed (passes of {BUDGET_PASS_SPP} spp, '
+                 'as `bdpt-jit render --time`; its spp the samples it rendered)')
     return text + (', Mitsuba 0.6)' if c.renderer == 'mitsuba06' else ')')
 
 

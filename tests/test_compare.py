@@ -506,3 +506,27 @@ def test_auto_targets_in_the_report():
     assert got['room']['auto / best fixed'] == 'bdpt: 1.3' and got['room']['<= 1.25'] == 'no'
     assert got['door']['met'] == 'no' and got['door']['<= 1.25'] == 'no'
     assert got['noisy']['met'] == 'undecided' and got['noisy']['<= 1.25'] == 'undecided'
+
+
+def test_a_budgeted_contestant_renders_its_budget():
+    """compare_lib.Runner.render_budgeted (technique auto's protocol, as `bdpt-jit render --time`):
+    at a budget a budgeted contestant renders until the budget has passed, in passes of
+    BUDGET_PASS_SPP, and its point holds the spp it rendered (the mean of its renders: a multiple
+    of the pass here, where each render is the same whole passes' count or close), its image
+    and choices under that spp; at a probe's spp it renders that spp. A stand-in for auto (technique pt) keeps the test's kernels few."""
+    import numpy as np
+    import compare_lib as lib
+    spec = next(sc for sc in lib.SCENES if sc.key == 'cornell-box')
+    scene = lib.load_scene(spec, 8)
+    c = lib.Contestant('x', 'x', {'type': 'bdpt', 'technique': 'pt'}, progressive=True, budgeted=True)
+    s = lib.Settings('t', res=8, budgets=(0.3,), repeats=1, probe_spp=(1,), ref_spp=1, ref_batches=1,
+                     pilot_spp=1, pilot_batches=1, count_spp=1)
+    ones = np.ones((8, 8, 3))
+    ref = lib.Reference(ones, ones, np.ones((8, 8), bool), np.zeros((8, 8)), {})
+    runner = lib.Runner(spec, scene, ref, s, [c])
+    probe = runner.stage({'x': 2})['x']
+    assert probe['spp'] == 2 and ('x', 2) in runner.images
+    point = runner.stage({'x': 5}, budget=0.3)['x']
+    assert point['time'] >= 0.3 and point['spp'] >= lib.BUDGET_PASS_SPP and point['spp'] != 5
+    assert ('x', point['spp']) in runner.images and ('x', 5) not in runner.images
+    assert runner.compile['x'][-1]['spp'] % lib.BUDGET_PASS_SPP == 0
