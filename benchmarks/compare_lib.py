@@ -601,7 +601,7 @@ class Runner:
         pass's kernels finish: without the wait every pass is queued before the hook sees the
         budget's end). Its spp: the samples it rendered over the pixels (a whole number where it
         stopped between passes; the mean of a point's renders is reported, rounded). Its choices
-        are noted under ``spp``, the point's requested count, until ``stage`` moves them."""
+        are noted under ``spp`` (``stage``'s key for the budget) until ``stage`` moves them."""
         from bdpt_jit.passes import RenderHooks
         w, h = (int(v) for v in self.scene.sensors()[0].film().crop_size())
         integ = make_integrator(self.by_key[key], self.spec.max_depth, samples_per_pass=BUDGET_PASS_SPP * w * h)
@@ -624,6 +624,10 @@ class Runner:
         renders ``budget`` seconds where one is given (``render_budgeted``): its spp is the mean of
         its renders', rounded."""
         out, spps = {}, {}
+        # a budgeted point's renders are kept under the budget until their spp is known (``rekey``): under the
+        # requested spp they could join an earlier point's of that spp
+        spp_of = {key: ('budget', budget) if self.by_key[key].budgeted and budget is not None else spp
+                  for key, spp in spp_of.items()}
         for key, spp in spp_of.items():
             dr.set_flag(dr.JitFlag.KernelHistory, True)
             dr.kernel_history_clear()
@@ -653,7 +657,7 @@ class Runner:
         return out
 
     def rekey(self, key, old, new):
-        """A budgeted point's image and choices, kept under its requested spp, moved to the spp it rendered."""
+        """A budgeted point's image and choices, kept under its budget's key, moved to the spp it rendered."""
         for store in (self.images, self.choices):
             if (key, old) in store:
                 store[(key, new)] = store.pop((key, old))
