@@ -190,6 +190,12 @@ def mean_and_error(values):
     return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
 
+# a known defect (docs/light-cache.md, twenty-third session): a merging cache's predicted variance
+# barely moves with its light subpaths (0.082-0.083 at n_L = 1/4 and 2 on this Cornell box) where
+# its renders' does (0.11 and 0.061; n_L = 2 is left out here for time); at n_L = 1 (vcm) the two agree
+MERGING_CACHES = "merging caches' predictions do not follow n_L (twenty-third session)"
+
+
 @pytest.mark.parametrize('name,props', [
     ('pt', {'technique': 'pt'}),
     ('bdpt', {}),
@@ -197,6 +203,9 @@ def mean_and_error(values):
     ('vcm', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0}),
     ('cache 1x per pixel', {'light_paths': 1.0, 'connections': 1}),
     ('vcm behind delta', {'technique': 'vcm', 'radius': 0.1, 'radius_alpha': 1.0}),
+    ('cache 0.25x1', {'light_paths': 0.25, 'connections': 1}),
+    pytest.param('vcm cache 0.25x1', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0, 'light_paths': 0.25, 'connections': 1},
+                 marks=pytest.mark.xfail(strict=True, reason=MERGING_CACHES)),
 ])
 def test_predicted_variance_agrees_with_the_rendered(name, props):
     """Issue 22's test 3: each candidate's variance predicted from the pilots' samples agrees
@@ -211,18 +220,21 @@ def test_predicted_variance_agrees_with_the_rendered(name, props):
     of one camera vertex's merges with each other (MomentFilm.add_cross) are half the second
     moment. The per-pixel candidate (pixel_counts.py; a fixed map of 1, 2 or 4 connections by
     pixel, test_light_cache.pixel_maps): its prediction per pixel that of its pixel's cache, as
-    auto.per_pixel_trials composes it."""
+    auto.per_pixel_trials composes it. The plain caches at n_L = 1 and 1/4 (light tracing's count
+    n_L: planted as 1 at n_L = 1/4, the prediction is 0.75 of the renders'); the merging cache at
+    n_L = 1/4 fails (MERGING_CACHES)."""
     D = 4
     scene = load_scene('caustic.xml' if 'behind delta' in name else 'cornell-box.xml', 16, D)
     base = {'type': 'bdpt', 'max_depth': D, 'mis': 'balance', **props}
     if 'per pixel' in name:
         return _per_pixel_prediction(scene, D, base)
-    pilot_props = props if name.startswith('vcm') else {}
+    pilot_props = {k: v for k, v in props.items() if k not in ('light_paths', 'connections')} if name.startswith('vcm') else {}
     counts = {'pt': (0.0, 0.0), 'bdpt': (1.0, 1.0), 'vcm': (1.0, 1.0, 1.0), 'vcm behind delta': (1.0, 1.0, 1.0)}.get(name)
-    if counts is None:          # the cache's n_c = c / (V / n_L) of its own pilot light pass
+    if counts is None:          # the cache's n_c = c / V (V of its own pilot light pass), n_lt (and n_m) = n_L
         integ = mi.load_dict(base)
         mi.render(scene, integrator=integ, spp=1, seed=0)
-        counts = (4.0 / integ.cache_run[0], 1.0)
+        c, n_l = props['connections'], props['light_paths']
+        counts = (c / integ.cache_run[0], n_l) + ((n_l,) if name.startswith('vcm') else ())
     rendered, image = measured_variance(scene, base, 256, 5000)
     meas, meas_se = mean_and_error([relmse(v, image) for v in rendered])
     pred, pred_se = mean_and_error([relmse(pilot(scene, D, [counts], seed=100 + k, **pilot_props)[1][1][0], image)
