@@ -63,7 +63,8 @@ DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchm
 LIGHT_PATHS = (0.25, 0.5, 1.0, 2.0)     # the caches' light subpaths per camera sample (n_L / n)
 CONNECTIONS = (1, 2, 4, 8)              # and cached vertices per camera vertex (c)
 TIMED_CACHES = ((0.25, 1), (1.0, 1), (1.0, 4))   # the caches whose time is measured (the cost model's)
-TIMED_MERGING = ((0.25, 1), (1.0, 1))     # the merging caches whose time is measured (the merges' cost model)
+MERGING_LIGHT_PATHS = (1.0,)            # the merging caches' n_L / n: where their prediction holds (``candidates``)
+TIMED_MERGING = ((1.0, 1), (1.0, 4))      # the merging caches whose time is measured (the merges' cost model)
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
 PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
@@ -149,7 +150,12 @@ def candidates(ctx, vpp):
     the bidirectional ones merging everywhere (technique vcm), and in a scene with a delta BSDF
     the classic estimator merging behind delta vertices only (vcm's own merge set, BEHIND_DELTA:
     predicted by a pilot of that merge set, ``pilot``); ``vpp``: the stored vertices per
-    light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs."""
+    light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs. The merging caches
+    take MERGING_LIGHT_PATHS only: at other n_L the prediction misses the merges' covariances
+    with the other strategies of their samples, which cancel the merges' own squared mean at
+    n_L = 1 only (0.55-0.75 of the renders' v at n_L = 1/4, 1.3 times at 2: docs/light-cache.md,
+    twenty-third session); on the caustic auto chose the merging cache 1/4 x 1, which rendered
+    1.5 times vcm's error."""
     merging = offers_merging(ctx)
     vcm = {'technique': 'vcm', 'merge_everywhere': True}
     out = [Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0)), Trial('bdpt', {}, (1.0, 1.0, 0.0))]
@@ -160,7 +166,7 @@ def candidates(ctx, vpp):
     if not ctx.strategies.trace_connect or mi.is_spectral:
         return out
     for m in ((False, True) if merging else (False,)):
-        for light_paths in LIGHT_PATHS:
+        for light_paths in (MERGING_LIGHT_PATHS if m else LIGHT_PATHS):
             for c in CONNECTIONS:
                 settings = {**(vcm if m else {}), 'light_paths': light_paths, 'connections': c}
                 out.append(Trial(f"{'vcm ' if m else ''}cache {light_paths:g}x{c}", settings,
@@ -315,7 +321,8 @@ def cost_model(trials):
     the timed caches' times (b, d at least 0: noise must not make a cost negative), for the caches
     not timed; a merging cache's, t + e + g n_L/n (its gathers find more light vertices as n_L
     grows; e, g at least 0), fitted to each timed merging cache's extra time over its cache's t
-    (and vcm's over the classic estimator's, n_L/n = 1, where both were timed). At first the points are TIMED_CACHES and TIMED_MERGING;
+    (and vcm's over the classic estimator's, n_L/n = 1, where both were timed); where those are
+    at one n_L/n (MERGING_LIGHT_PATHS), t + e, e their mean. At first the points are TIMED_CACHES and TIMED_MERGING;
     each cache timed later (the best by the model, before it is chosen) joins them. From the
     first three alone a noisy point set a slope to 0 (on veach-bidir the cache 1 x 4 timed below
     1 x 1, so connections cost nothing), and each cache with more connections was timed in turn
@@ -352,6 +359,8 @@ def cost_fit(trials):
     e = g = 0.0
     if len({lp for lp, _ in extra}) >= 2:           # merges at two n_L/n at least
         e, g = nonnegative_fit([(1.0, lp) for lp, _ in extra], [x for _, x in extra], free=0)
+    elif extra:                                      # at one: a constant
+        e = max(float(np.mean([x for _, x in extra])), 0.0)
     return {'a': float(a), 'b': float(b), 'd': float(d), 'e': float(e), 'g': float(g),
             'merging': any(tr.timed and tr.merges and tr.cache is not None for tr in trials),
             'floor': least_time(probe(trials), trials),         # (a free intercept can go below)
@@ -493,7 +502,7 @@ def point_groups(trials):
     classic estimator's trial; vcm's and BEHIND_DELTA's, each after the classic estimator's (its
     time is their least); the plain caches of TIMED_CACHES (the cost model's points: every
     cache's and every per-pixel candidate's time); and where merging caches are offered,
-    TIMED_MERGING (the merges' extra time at two n_L/n: not vcm's over the classic estimator's,
+    TIMED_MERGING (the merges' extra time at two c: not vcm's over the classic estimator's,
     which on veach-bidir at 256 x 256 cost 0.46-0.62 s a spp against the merging cache 1 x 1's
     ~0.3, and the classic estimator's besides). Each bound is
     the score at the least time the candidate could take (``least_time``), a per-pixel
@@ -524,7 +533,7 @@ def least_time(trial, trials):
     t = max((named['pt'].seconds or 0.0) if 'pt' in named else 0.0, probe(trials).seconds or 0.0)
     if trial.merges:
         least = named.get('bdpt') if trial.cache is None else \
-            next((tr for tr in trials if tr.merges and tr.cache == (min(LIGHT_PATHS), 1)), None)
+            next((tr for tr in trials if tr.merges and tr.cache == (min(MERGING_LIGHT_PATHS), 1)), None)
         if least is not None and least.timed:
             t = max(t, least.seconds)
     return t

@@ -359,13 +359,14 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
     info = integ.last_render_info['auto']
     names = [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
     caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
-    assert names == ['pt', 'bdpt'] + (['vcm', auto.BEHIND_DELTA] + caches + ['vcm ' + c for c in caches]
-                                      if merging else caches)
+    merging_caches = [f'vcm cache {n:g}x{c}' for n in auto.MERGING_LIGHT_PATHS for c in auto.CONNECTIONS]
+    assert names == ['pt', 'bdpt'] + (['vcm', auto.BEHIND_DELTA] + caches + merging_caches if merging else caches)
     for c in info['candidates']:        # the per-pixel candidates (auto.per_pixel_trials): maps of those caches
         if 'per pixel' in c['name']:
             lp = c['settings']['light_paths']
             m = c['pixel_counts']['merges']
             assert c['name'] == f"{'vcm ' if m is not None else ''}cache {lp:g}x per pixel" and lp in auto.LIGHT_PATHS
+            assert m is None or lp in auto.MERGING_LIGHT_PATHS
             conn = c['pixel_counts']['connections']
             # arrays, not lists: mi.render walks the integrator's attributes (last_render_info
             # included) on every call, a list element by element (auto.Trial.report)
@@ -412,6 +413,8 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
                 for c in caches if c['timed'] and 'vcm' in c['name']]
         if len({x for x, _ in pts}) >= 2:
             e, g = lsq_linear(np.array([[1.0, x] for x, _ in pts]), np.array([y for _, y in pts]), bounds=(0, np.inf), method='bvls').x
+        elif pts:           # merges at one n_L (auto.MERGING_LIGHT_PATHS): their mean extra time
+            e = max(np.mean([y for _, y in pts]), 0.0)
     floor = max(t_pt, t['cache 0.25x1'])       # no cache below them (a noisy fit's intercept can go below 0)
     fit = info['cost_model']                    # reported (auto.cost_fit) as fitted
     assert (fit is None) == (not modelled)
@@ -700,7 +703,7 @@ def _stub_choice(monkeypatch, rel_var, times, pixel_var=None, merging=False):
         trials += [auto.Trial(name, {'n': name}, (1.0, 1.0, 1.0)) for name in ('vcm', auto.BEHIND_DELTA)]
     for m in ('', 'vcm ') if merging else ('',):
         trials += [auto.Trial(f'{m}cache {lp:g}x{c}', {'n': f'{m}cache {lp:g}x{c}'}, (c, lp, lp if m else 0.0), (lp, c))
-                   for lp in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
+                   for lp in (auto.MERGING_LIGHT_PATHS if m else auto.LIGHT_PATHS) for c in auto.CONNECTIONS]
 
     def pilot(make, trials, scene, sensor, seed):
         for tr in trials:
@@ -903,14 +906,14 @@ def test_auto_times_only_what_could_win(monkeypatch):
     from bdpt_jit import auto
     rel = {'pt': 1.0, 'bdpt': 0.5, 'vcm': 0.47, auto.BEHIND_DELTA: 0.32}
     times = {'pt': [1.0], 'cache 0.25x1': [1.2], 'bdpt': [2.0], auto.BEHIND_DELTA: [2.5], 'vcm': [7.0],
-             'cache 1x1': [1.5], 'cache 1x4': [2.5], 'vcm cache 0.25x1': [1.5], 'vcm cache 1x1': [2.2],
-             'vcm cache 0.5x2': [2.0]}
+             'cache 1x1': [1.5], 'cache 1x4': [2.5], 'vcm cache 1x1': [2.2], 'vcm cache 1x4': [3.2],
+             'vcm cache 1x2': [2.0]}
     best, by, made = _stub_choice(monkeypatch, rel, times, merging=True)
     assert best.name == auto.BEHIND_DELTA and set(made) == {'pt', 'cache 0.25x1', 'bdpt', auto.BEHIND_DELTA}
     assert by['vcm'].seconds is None and by['cache 1x1'].seconds is None and by['vcm cache 1x1'].seconds is None
-    best, by, made = _stub_choice(monkeypatch, {**rel, 'vcm cache 0.5x2': 0.2}, times, merging=True)
-    assert {'cache 1x1', 'cache 1x4', 'vcm cache 0.25x1', 'vcm cache 1x1'} <= set(made) and 'vcm' not in made
-    assert best.name == 'vcm cache 0.5x2' and best.timed and best.seconds == 2.0
+    best, by, made = _stub_choice(monkeypatch, {**rel, 'vcm cache 1x2': 0.2}, times, merging=True)
+    assert {'cache 1x1', 'cache 1x4', 'vcm cache 1x1', 'vcm cache 1x4'} <= set(made) and 'vcm' not in made
+    assert best.name == 'vcm cache 1x2' and best.timed and best.seconds == 2.0
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
