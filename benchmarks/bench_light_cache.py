@@ -151,12 +151,13 @@ def prepare(args, name):
 
 
 def run_once(args, c, r, ref):
-    """Equal-time run ``r`` of contestant ``c`` (seeds of its own: 1000 r + batch)."""
+    """Equal-time run ``r`` of contestant ``c`` (seeds of its own: --seed + 1000 r + batch)."""
+    seed0 = args.seed + 1000 * r
     if c['name'] == 'auto':
-        img, spp, secs, chosen = equal_time_auto(c['scene'], c['props'], args.budget, args.batch_spp, seed0=1000 * r)
+        img, spp, secs, chosen = equal_time_auto(c['scene'], c['props'], args.budget, args.batch_spp, seed0=seed0)
         c['chosen'].append(chosen)
     else:
-        img, spp, secs = equal_time(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=1000 * r)
+        img, spp, secs = equal_time(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=seed0)
     c['rels'].append(relmse(img, ref))
     c['spps'].append(spp)
     c['sps'].append(spp * args.res * args.res / secs)
@@ -180,6 +181,9 @@ def main():
     ap.add_argument('--batch-spp', type=int, default=4)
     ap.add_argument('--repeats', type=int, default=1,
                     help='equal-time runs per contestant (seeds of their own, the contestants in turn); the median is reported')
+    ap.add_argument('--seed', type=int, default=0,
+                    help='the first run\'s seed (run r: this plus 1000 r); the same seeds in every invocation '
+                         'give the same samples, auto\'s pilots included, so a new --seed samples its choices afresh')
     ap.add_argument('--ref-spp', type=int, default=4096)
     ap.add_argument('--ref-integrator', default='path',
                     help='configuration of the reference (classic where path cannot converge)')
