@@ -143,14 +143,17 @@ def offers_merging(ctx):
     return scene_has_lobe(ctx.scene, mi.BSDFFlags.Glossy, mi.BSDFFlags.Delta)
 
 
-def candidates(ctx, vpp):
+def candidates(ctx, vpp, vpp_merging=None):
     """The candidates for the scene of Context ``ctx`` (technique bdpt): path tracing, the
     classic estimator and the light vertex caches of LIGHT_PATHS x CONNECTIONS (where connections
     exist, max_depth >= 3, and not in spectral variants), and where ``offers_merging``, each of
     the bidirectional ones merging everywhere (technique vcm), and in a scene with a delta BSDF
     the classic estimator merging behind delta vertices only (vcm's own merge set, BEHIND_DELTA:
     predicted by a pilot of that merge set, ``pilot``); ``vpp``: the stored vertices per
-    light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs. The merging caches
+    light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs, and ``vpp_merging``
+    the merging caches' (their light subpaths also store the vertices only a merge can use:
+    2.05 against 1.45 on the Cornell box at max_depth 4, and each connection draws among all of
+    them; integrator.auto_vertices; default ``vpp``). The merging caches
     take MERGING_LIGHT_PATHS only: at other n_L the prediction misses the merges' covariances
     with the other strategies of their samples, which cancel the merges' own squared mean at
     n_L = 1 only (0.55-0.75 of the renders' v at n_L = 1/4, 1.3 times at 2: docs/light-cache.md,
@@ -169,8 +172,9 @@ def candidates(ctx, vpp):
         for light_paths in (MERGING_LIGHT_PATHS if m else LIGHT_PATHS):
             for c in CONNECTIONS:
                 settings = {**(vcm if m else {}), 'light_paths': light_paths, 'connections': c}
+                v = vpp_merging if m and vpp_merging is not None else vpp
                 out.append(Trial(f"{'vcm ' if m else ''}cache {light_paths:g}x{c}", settings,
-                                 (c / max(vpp, 1e-3), light_paths, light_paths if m else 0.0),
+                                 (c / max(v, 1e-3), light_paths, light_paths if m else 0.0),
                                  (light_paths, c)))
     return out
 
@@ -444,9 +448,10 @@ def pilot_group(make, trials, behind_delta, scene, sensor, seed):
         tr.own_var = float(np.mean(tr.pixel_V.reshape(-1) / (tr.pilot_image ** 2 + DENOM)))
 
 
-def choose(make, ctx, scene, sensor, seed, vpp):
-    """The first decision of a render: (the chosen Trial, every Trial)."""
-    trials = candidates(ctx, vpp)
+def choose(make, ctx, scene, sensor, seed, vpp, vpp_merging=None):
+    """The first decision of a render: (the chosen Trial, every Trial); ``vpp``, ``vpp_merging``
+    as ``candidates``'."""
+    trials = candidates(ctx, vpp, vpp_merging)
     pilot(make, trials, scene, sensor, seed)
     return timed_choice(make, trials, scene, sensor, seed, trial_spp(sensor)), trials
 

@@ -373,6 +373,18 @@ def test_auto_renders_the_chosen_configuration(scene_name, merging):
             assert isinstance(conn, np.ndarray) and (m is None or isinstance(m, np.ndarray))
             assert conn.shape == (16, 16) and set(np.unique(conn)) <= set(auto.CONNECTIONS)
             assert (m is not None) == (c['settings'].get('technique') == 'vcm') and (merging or m is None)
+    # each cache's n_c = c / V with V its own kind's (integrator.auto_vertices): as a cache of that
+    # kind measures it rendering with the same seed (a merging cache's light subpaths store more)
+    for kind, key in (({}, 'vertices_per_light_path'), ({'technique': 'vcm', 'merge_everywhere': True}, 'vertices_per_merging_light_path')):
+        if key == 'vertices_per_merging_light_path' and not merging:
+            assert info[key] is None
+            continue
+        own = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **kind, 'light_paths': 1.0, 'connections': 1})
+        mi.render(scene, integrator=own, spp=1, seed=5)
+        assert info[key] == own.cache_run[0], key
+        for c in info['candidates']:
+            if c['name'].startswith('vcm cache ' if kind else 'cache ') and 'per pixel' not in c['name']:
+                assert c['counts'][0] == pytest.approx(c['settings']['connections'] / info[key]), c['name']
     # no candidate faster than pt (each does pt's work and more), and a near tie goes to pt;
     # candidates that no timing could make the best have no time (auto.time_points)
     t_pt = info['candidates'][0]['seconds_per_spp']
@@ -720,7 +732,7 @@ def _stub_choice(monkeypatch, rel_var, times, pixel_var=None, merging=False):
         seq = times[made[-1]]
         return seq[min(made.count(made[-1]) - 1, len(seq) - 1)] * auto.TRIAL_SPP
 
-    monkeypatch.setattr(auto, 'candidates', lambda ctx, vpp: trials)
+    monkeypatch.setattr(auto, 'candidates', lambda ctx, vpp, vpp_merging=None: trials)
     monkeypatch.setattr(auto, 'pilot', pilot)
     monkeypatch.setattr(auto, 'kernel_seconds', kernel_seconds)
     monkeypatch.setattr(auto, '_WARM', _AllWarm())     # one timing a trial render, as ``times`` gives
