@@ -262,15 +262,18 @@ class CameraTracer:
     # ------------------------------------------------------------------ walk
     def first_hit(self):
         """The camera rays and their first hits: (film positions, ray, hit, the environment
-        seen directly, alpha, the AOV values, the Subpath at the hit)."""
+        seen directly, alpha, the AOV values, the Subpath at the hit). Where the walk carries
+        its hits as transport.PendingHit (transport.deferred) the hit is one, and the Subpath's
+        MIS state waits for its event (transport.resolve, at the walk's first step)."""
         c = self.ctx
         n, max_edges = self.ps.n, c.max_depth_edges
         film_pos, ray, beta = self.primary()
         beta_lens = beta
         beta_start = None
-        if c.media is None:
+        if transport.deferred(c, self.mode):
+            si = transport.PendingHit(c.sampling.preliminary(ray, True), c.camera.lens_point(ray))
+        elif c.media is None:
             si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor
-            p = si.p
         else:       # distance sampling from the camera's medium (media_path.MediumHit)
             # (the roulette's reference before the step: a collision's weight holds 1 / sigma_t, a
             # length, which the scatter's sigma_s takes back out; as a reference it would make
@@ -279,27 +282,35 @@ class CameraTracer:
             si, beta, pdf_fwd_l, pdf_rev_l = media_path.sample_step(
                 c, self.ps.sampler, ray, medium_at_sensor(c.sensor, n), media_path.surface_start(n), beta,
                 dr.full(mi.Bool, True, n))
-            p = si.p
+        valid = si.is_valid()
         if c.stats is not None:
-            c.stats.ray('camera', dr.full(mi.Bool, True, n), si.is_valid())
+            c.stats.ray('camera', dr.full(mi.Bool, True, n), valid)
         self.film_pos = film_pos
         L = mi.Spectrum(0.0)
         if self.ps.beams is not None and self.mis.merge_here_camera(False) is True:
             L += self.first_beam(ray, si, beta_lens, film_pos)
         if c.strategies.trace_env:
             L += self.strategy_s0_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
-                                      MISState(mi.Float(0), mi.Float(0)), ~si.is_valid() & (max_edges >= 1))
-        alpha = dr.select(si.is_valid(), 1.0, 0.0)
-        aov_values = self.aov_values(si if c.media is None else si.si, ray) if c.aovs else ()
-        # the first edge's length as every other strategy measures it (from the lens point)
-        dist2_cam = c.camera.first_edge_dist2(ray, p)
-        cos_hit = dr.abs(dr.dot(si.n, ray.d)) if c.media is None else si.cos(ray.d)
-        st = self.mis.camera_start(c.camera.pdf_w(ray.d), dist2_cam, cos_hit)
+                                      MISState(mi.Float(0), mi.Float(0)), ~valid & (max_edges >= 1))
+        alpha = dr.select(valid, 1.0, 0.0)
+        aov_values = self.aov_values(self.surface(si, ray), ray) if c.aovs else ()
+        if isinstance(si, transport.PendingHit):
+            st = self.mis.camera_before_hit(c.camera.pdf_w(ray.d), n)
+        else:   # the first edge's length as every other strategy measures it (from the lens point)
+            dist2_cam = c.camera.first_edge_dist2(ray, si.p)
+            cos_hit = dr.abs(dr.dot(si.n, ray.d)) if c.media is None else si.cos(ray.d)
+            st = self.mis.camera_start(c.camera.pdf_w(ray.d), dist2_cam, cos_hit)
         if c.media is not None:
             st = self.mis.distance(st, pdf_fwd_l, pdf_rev_l)
         sub = Subpath(beta, dr.max(beta) if beta_start is None else beta_start, st, mi.UInt32(1),
-                      si.is_valid() & (max_edges >= 1))
+                      valid & (max_edges >= 1))
         return film_pos, ray, si, L, alpha, aov_values, sub
+
+    def surface(self, hit, ray):
+        """The surface interaction of the first hit ``hit`` of ``ray`` (for the AOVs)."""
+        if isinstance(hit, transport.PendingHit):
+            return self.ctx.sampling.resolve(hit.pi, ray, True)
+        return hit if self.ctx.media is None else hit.si
 
     def first_beam(self, ray, hit, beta, film_pos):
         """Merges along the camera ray's segment through media (beams.py; where a merge at the

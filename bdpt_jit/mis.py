@@ -322,10 +322,14 @@ class MIS:
     def camera_start(self, pdf_cam_w, dist2, cos_hit):
         """The camera subpath's state at its first hit z1 (``dist2``: the first edge's squared
         length from the lens point; ``cos_hit``: |cos| at z1)."""
+        return self.hit(self.camera_before_hit(pdf_cam_w, dr.width(cos_hit)), dist2, cos_hit, True)
+
+    def camera_before_hit(self, pdf_cam_w, n):
+        """The camera subpath's state before its first hit (``n`` lanes), whose MIS event
+        ``hit`` takes (camera_start; with a transport.PendingHit once the hit is resolved)."""
         d_vcm, d_vc = self.camera_init(pdf_cam_w)
-        d_vcm, d_vc = self.on_hit(d_vcm, d_vc, dist2, cos_hit)
-        d_vm = dr.zeros(mi.Float, dr.width(cos_hit))         # [VCM (31)-(33)] no merge behind the camera
-        return MISState(d_vcm, d_vc, d_vm, mi.Float(0.0), mi.Float(0.0))
+        zero = dr.zeros(mi.Float, n)                         # [VCM (31)-(33)] no merge behind the camera
+        return MISState(d_vcm + zero, d_vc + zero, zero, mi.Float(0.0), mi.Float(0.0))
 
     def light_start(self, pdf_emit_w, cos_e, is_delta, pdf_direct_a, dist2, cos_hit):
         """The light subpath's state at its first hit y1 (arguments as light_init's and

@@ -105,8 +105,8 @@ class FamilyMIS(MIS):
         return 0.0 * like
 
     # ------------------------------------------------------------------ the subpaths' starts
-    def camera_start(self, pdf_cam_w, dist2, cos_hit):
-        st = super().camera_start(pdf_cam_w, dist2, cos_hit)
+    def camera_before_hit(self, pdf_cam_w, n):
+        st = super().camera_before_hit(pdf_cam_w, n)
         if self.mis_merges:                 # d_vm a family vector from the start (the loop's state)
             st.d_vm = Family(st.d_vm, st.d_vm, st.d_vm, st.d_vm)
         return st

@@ -7,6 +7,7 @@ render uses (``ctx.sampling``), so the tracers never ask which kind of pass they
 import weakref
 
 import drjit as dr
+import mitsuba as mi
 
 from . import connect
 
@@ -28,6 +29,17 @@ class Sampling:
         (rays.RayOffsets.project_to_triangle: the mesh error bound assumes it). ``primary``: a
         camera ray's first hit."""
         si = self.ctx.scene.ray_intersect(ray, active)
+        return self.ctx.offsets.project_to_triangle(si, active)
+
+    def preliminary(self, ray, active):
+        """scene.ray_intersect_preliminary: the hit without its surface interaction
+        (transport.PendingHit; ``resolve`` completes it)."""
+        return self.ctx.scene.ray_intersect_preliminary(ray, False, active)
+
+    def resolve(self, pi, ray, active):
+        """The surface interaction of the preliminary hit ``pi`` of ``ray``: what ``intersect``
+        returns for ``ray`` (Mitsuba's scene.ray_intersect is these two steps)."""
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
         return self.ctx.offsets.project_to_triangle(si, active)
 
     def sample_bsdf(self, bsdf, mode, si, u1, u2, active):

@@ -15,6 +15,8 @@ from .mis import MISState
 from .roulette import roulette
 from .vertex import RADIANCE, bsdf_context
 
+PENDING_HITS = True     # False: camera walks carry whole interactions (for side-by-side measurements)
+
 
 class Subpath:
     """The state a subpath's walk carries from vertex to vertex, one field a line."""
@@ -29,6 +31,35 @@ class Subpath:
     def __init__(self, beta=None, beta_start=None, mis=None, depth=None, active=None):
         self.beta, self.beta_start, self.mis = beta, beta_start, mis
         self.depth, self.active = depth, active
+
+
+class PendingHit:
+    """The next vertex of a walk before its surface interaction is computed, one field a line:
+    what a primal camera walk without media carries from one step to the next instead of a whole
+    SurfaceInteraction3f (30 varying words against 11; each word of loop state costs pt's
+    kernel ~0.1% on scenes/veach-mis.xml). The interaction is computed from it at the next step
+    (``resolve``), where the hit's MIS event, which needs the hit's position and normal, is
+    taken too (``arrive`` takes the rest of it at once)."""
+    DRJIT_STRUCT = {
+        'pi': mi.PreliminaryIntersection3f,   # the ray's hit: distance, primitive, shape
+        'origin': mi.Point3f,                 # the vertex the ray left (the lens point before the first hit)
+    }
+
+    def __init__(self, pi=None, origin=None):
+        self.pi = pi
+        self.origin = origin if origin is None or isinstance(origin, mi.Point3f) else mi.Point3f(origin)
+
+    def is_valid(self):
+        return self.pi.is_valid()
+
+
+def resolve(ctx, mis, mode, hit, ray, sub):
+    """The PendingHit ``hit`` of ``ray`` made a vertex: its SurfaceInteraction3f (as
+    scene.ray_intersect computes it, in ``sub``'s active lanes) and ``sub`` with the hit's MIS
+    event (the edge's change of measure from ``hit.origin``)."""
+    si = ctx.sampling.resolve(hit.pi, ray, sub.active)
+    st = mis.hit(sub.mis, dr.squared_norm(si.p - hit.origin), dr.abs(dr.dot(si.n, ray.d)), mode == RADIANCE)
+    return si, Subpath(sub.beta, sub.beta_start, st, sub.depth, sub.active)
 
 
 def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
@@ -113,7 +144,9 @@ def advance(ctx, mis, mode, sampler, v, sub, merge_here=True):
     without). The hit is not yet accounted for: ``arrive`` does that."""
     ray, sub, is_delta, u = scatter(ctx, mis, mode, sampler, v, sub, merge_here)
     scattered = None
-    if ctx.media is None:
+    if deferred(ctx, mode):     # the interaction and the MIS event at the next step (PendingHit)
+        si_next, dist2 = PendingHit(ctx.sampling.preliminary(ray, sub.active), v.p), None
+    elif ctx.media is None:
         si_next, beta, dist2 = ctx.sampling.next_vertex(mode == RADIANCE, v, ray, u, is_delta, sub.beta, sub.active)
         sub.beta = beta
     else:       # distance sampling: a medium vertex or a surface (media_path.MediumHit)
@@ -130,9 +163,18 @@ def arrive(mis, mode, sub, si, ray, dist2):
     media_path.MediumHit in a scene with media; ``dist2``: the edge's squared length): lanes
     that left the scene end, the MIS quantities take the edge's change of measure, depth + 1."""
     active = sub.active & si.is_valid()
+    if isinstance(si, PendingHit):      # the MIS event where the interaction is computed (resolve)
+        return Subpath(sub.beta, sub.beta_start, sub.mis, sub.depth + 1, active)
     cos_hit = si.cos(ray.d) if isinstance(si, media_path.MediumHit) else dr.abs(dr.dot(si.n, ray.d))
     st = mis.hit(sub.mis, dist2, cos_hit, mode == RADIANCE)
     return Subpath(sub.beta, sub.beta_start, st, sub.depth + 1, active)
+
+
+def deferred(ctx, mode):
+    """Whether a walk carries its next vertex as a PendingHit: camera subpaths of primal
+    passes without media (a light subpath's first hit is needed whole for its MIS start, and a
+    differentiable pass's hits carry the edges' derivatives, gradients.py)."""
+    return PENDING_HITS and mode == RADIANCE and ctx.media is None and not ctx.ad
 
 
 def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
@@ -149,13 +191,16 @@ def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
         segment(v, ray, si, scattered, carry, was_delta) -> carry  with media, where ``segments``:
                              the step's segment (beams.py; ``scattered``: the Subpath before the step)
 
-    ``carry``: the tracer's own loop state (a tuple of Dr.Jit values). Returns (si, sub, carry)
+    ``carry``: the tracer's own loop state (a tuple of Dr.Jit values). ``si`` may be a
+    PendingHit (``deferred``): the walk then carries its hits so. Returns (si, sub, carry)
     where the walk stopped. ``sampler``'s state is loop state. The loop is recorded once
     (loops.while_once)."""
     mode = tracer.mode
 
     def step(objects, state):
         si, ray, sub, carry = state
+        if isinstance(si, PendingHit):
+            si, sub = resolve(ctx, mis, mode, si, ray, sub)
         v = tracer.vertex(si, ray)
         sub, carry, merge_here = tracer.at_vertex(v, ray, sub, carry)
         ray, si, sub, dist2, was_delta, scattered = advance(ctx, mis, mode, sampler, v, sub, merge_here)

@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from bdpt_jit import loops
+from bdpt_jit import loops, transport
 from helpers import scene_path
 
 
@@ -117,6 +117,28 @@ def test_walks_recorded_once_same_image(name, technique):
         undo()
     walks = {k: v for k, v in counts.items() if k in ('bdpt_camera_subpath', 'bdpt_light_subpath')}
     assert walks and all(v == 1 for v in walks.values()), counts
+
+
+@pytest.mark.parametrize('name,technique,aovs', [('cornell-box.xml', 'pt', 'dd:depth,nn:sh_normal'),
+                                                  ('caustic.xml', 'vcm', ''), ('veach-mis.xml', 'bdpt', '')])
+def test_pending_hits_same_image(name, technique, aovs):
+    """Camera walks that carry their next hit as a transport.PendingHit (its interaction and MIS
+    event computed at the next step) render the image, AOVs included, of walks that carry whole
+    interactions (same seed; a pending hit whose MIS event were dropped or taken from the wrong
+    point would change the weights)."""
+    scene = mi.load_file(scene_path(name), res=16, max_depth=5)
+    props = {'type': 'bdpt', 'max_depth': 5, 'technique': technique}
+    if aovs:
+        props['aovs'] = aovs
+    images = {}
+    for pending in (False, True):
+        transport.PENDING_HITS = pending
+        try:
+            images[pending] = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=4, seed=5))
+        finally:
+            transport.PENDING_HITS = True
+    assert np.all(np.isfinite(images[True]))
+    np.testing.assert_allclose(images[True], images[False], rtol=1e-5, atol=1e-6 * images[False].max())
 
 
 def loop_sizes(scene, integ, capfd):
