@@ -20,9 +20,8 @@ holds the connected subpath's own vertices: a bias of order 1 / n_L). So n_c is 
 per render by a pilot light pass of independent samples (``pilot``): n_c = c / (V / n_L)_pilot;
 the estimator's own factor V / (c n_L) is the pass's, which makes it exact for any V.
 
-Uniform draws need the slot of the k-th valid vertex: an exclusive prefix sum over the
-level-major store's valid flags gives each vertex its rank, and a scatter writes its slot at
-that rank (``LightCache``): exact, and two passes over the store."""
+Uniform draws need the slot of the k-th valid vertex: the store's valid slots compressed
+(store.LightStore.stored_slots, as the photon grid is built), in one pass over the store."""
 
 import drjit as dr
 import mitsuba as mi
@@ -56,14 +55,9 @@ class LightCache:
 
     def __init__(self, store, c):
         self.store = store
-        n_slots = store.n * store.capacity
-        slot = dr.arange(mi.UInt32, n_slots)
-        level = slot // store.n_opaque
-        valid = level < dr.gather(mi.UInt32, store.count, slot - level * store.n_opaque)
-        rank = dr.prefix_sum(dr.select(valid, mi.UInt32(1), mi.UInt32(0)))     # exclusive
-        self.slots = dr.zeros(mi.UInt32, max(n_slots, 1))
-        dr.scatter(self.slots, slot, rank, valid)
-        self.count = dr.sum(store.count)
+        slots = store.stored_slots()
+        self.slots = slots if dr.width(slots) > 0 else dr.zeros(mi.UInt32, 1)
+        self.count = dr.opaque(mi.UInt32, dr.width(slots))     # (a literal would recompile per V)
         self.c = dr.opaque(mi.UInt32, c)
         self.scale = self.scale_for(self.c)
         dr.eval(self.slots, self.count, self.scale)

@@ -86,7 +86,7 @@ class PhotonGrid:
     slots           the store's slots in bucket order"""
 
     def __init__(self, scene, store, schedule):
-        slot = stored_slots(store)
+        slot = store.stored_slots()
         n = dr.width(slot)
         size = 1               # buckets: BUCKETS times the entries, so that empty cells rarely share one
         while size < max(BUCKETS * n, 1):
@@ -141,19 +141,6 @@ class PhotonGrid:
             buckets.append(b)
             dup.append(d)
         return buckets, dup
-
-
-def stored_slots(store):
-    """The slots of ``store`` (store.LightStore) that hold a vertex, in increasing order. The
-    grid is built over these alone: a light subpath fills a few of its capacity's levels (on the
-    caustic at 256 x 256, max_depth 8, 1.1 vertices a subpath in 7 levels), and the grid's
-    kernels over every slot took 12% of vcm's kernel time there (8.4 M slots: 97 ms of 832)."""
-    n_slots = store.n * store.capacity
-    if n_slots == 0:
-        return dr.zeros(mi.UInt32, 0)
-    slot = dr.arange(mi.UInt32, n_slots)
-    level = slot // store.n_opaque
-    return dr.compress(level < dr.gather(mi.UInt32, store.count, slot - level * store.n_opaque))
 
 
 class Merger:
