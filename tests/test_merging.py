@@ -102,6 +102,20 @@ def scene_radius(scene):
     return float(dr.norm(b.max - b.min)) * 0.5
 
 
+def test_stored_slots_are_the_valid_slots_in_order():
+    """store.LightStore.stored_slots, over which the photon grid and the light vertex cache are
+    built: every slot level * n + i with level < count[i], in increasing order, and no other
+    (a slot left out loses its vertex's merges and draws; an empty one merges garbage)."""
+    from bdpt_jit.store import LightStore
+    count = [0, 3, 1, 2, 0, 3]
+    store = LightStore(len(count), 3)
+    store.count = mi.UInt32(count)
+    want = sorted(level * len(count) + i for i, k in enumerate(count) for level in range(k))
+    assert store.stored_slots().numpy().tolist() == want
+    store.count = dr.zeros(mi.UInt32, len(count))
+    assert dr.width(store.stored_slots()) == 0
+
+
 @pytest.mark.parametrize('alpha', [pytest.param(1.0, marks=pytest.mark.slow), 0.75])
 def test_vm_matches_the_blurred_irradiance(alpha):
     """Image mean of ``vm`` (max_depth 2: light -> plane -> camera) with ``spp`` iterations (one
