@@ -54,11 +54,13 @@ class MediaInfo:
     traced), chromatic (a homogeneous medium's sigma_t differs between channels: a channel is
     chosen per distance sample), gray (every medium's sigma_t is the same in all channels, so a
     point a distance-sampled ray passes has survived with the probability T: merging inside
-    media by beams, beams.py). Built by scene_check.media_info."""
+    media by beams, beams.py), partial_null (a shape's BSDF has a Null lobe beside others:
+    ``thindielectric``, ``mask``; a walk passing one through its Null lobe counts no bounce there,
+    transport.scatter). Built by scene_check.media_info."""
 
-    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False):
+    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
-        self.gray = gray
+        self.gray, self.partial_null = gray, partial_null
 
 
 def has_medium(medium):
@@ -98,9 +100,34 @@ def medium_at_emitter(emitter, n, d, active=True):
     return dr.select(active & on_shape & si.is_medium_transition(), si.target_medium(d), own)
 
 
+# every lobe flag but Null: a BSDF with the Null flag and none of these passes all light unchanged
+_LOBES = int(mi.BSDFFlags.Reflection | mi.BSDFFlags.Transmission) & ~int(mi.BSDFFlags.Null)
+
+
 def is_null(bsdf, si):
-    """Lanes whose hit ``si`` is an index-matched boundary (BSDF flag Null)."""
-    return si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+    """Lanes whose hit ``si`` is an index-matched boundary: a BSDF whose only lobe is Null (the
+    ``null`` plugin). A BSDF with a Null lobe beside others (``thindielectric``, whose straight
+    transmission is flagged Null; ``mask`` of opacity below 1) is a surface like any other: a walk
+    samples it, and may pass it through its Null lobe (a delta vertex that volpath does not count
+    as a bounce, transport.scatter), and an edge that meets it stops there. volpath's shadow rays
+    pass it weighted by its null transmission instead; both estimate the same light."""
+    flags = bsdf.flags()
+    return si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
+
+
+def partly_null(bsdf, si, active):
+    """Lanes of ``active`` whose hit ``si`` is a BSDF with a Null lobe beside others (is_null),
+    and the Spectrum that lobe passes there (``eval_null_transmission``: 1 - R of a thin
+    dielectric, 1 - opacity of a mask); 0 elsewhere."""
+    part = active & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+    return part, dr.select(part, bsdf.eval_null_transmission(si, part), 0.0)
+
+
+def surface_stop(bsdf, si, active):
+    """The probability that a walk reaching the surface ``si`` stops there (1 - the mean of its
+    Null lobe's transmission, partly_null; 1 on any other surface): a surface's DensityFactor."""
+    _, passed = partly_null(bsdf, si, active)
+    return dr.select(active, 1.0 - mean(passed), 1.0)
 
 
 def channel_of(s, c):
@@ -318,7 +345,12 @@ class MediumTracer:
             tr[going], tr_hom[going] = mi.Spectrum(tr * seg[0]), mi.Spectrum(tr_hom * seg[1])
             if self.info.heterogeneous:        # (homogeneous only: T_maj stays 1, a constant)
                 tmaj[going] = tmaj * seg[2]
-            null = hit & is_null(si.bsdf(ray), si)
+            bsdf = si.bsdf(ray)
+            null = hit & is_null(bsdf, si)
+            if self.info.partial_null:      # passed through the Null lobe, with its probability in the density
+                part, passed = partly_null(bsdf, si, hit & ~null)
+                tr[part], tr_hom[part] = mi.Spectrum(tr * passed), mi.Spectrum(tr_hom * mean(passed))
+                null |= part & (dr.max(passed) > 0)
             crossings += 1
             ok[hit & ~null] = False
             ok[null & (crossings >= MAX_CROSSINGS)] = False
@@ -425,7 +457,10 @@ class MediumTracer:
             collided |= coll
             found = dr.select(coll, mei, found)
             factor = dr.select(coll, f, factor)
-            null = hit & ~coll & is_null(si.bsdf(ray), si)
+            bsdf = si.bsdf(ray)
+            null = hit & ~coll & is_null(bsdf, si)
+            if self.info.partial_null:      # a partly null surface: passed with its Null lobe's probability
+                null, factor = self._partial_step(sampler, (si, bsdf), hit & ~coll & ~null, null, (tr_hom, w, factor))
             crossings += 1
             si_end = dr.select(going & ~coll, si, si_end)
             ok[coll | (hit & ~null)] = True
@@ -435,6 +470,22 @@ class MediumTracer:
         self._count('real_collisions', collided)
         found.t = dr.norm(found.p - origin)      # from the sample's origin (not the last segment's)
         return self._distance_result((found, si_end, collided), (tr_hom, w, tmaj), factor, start, medium, ok)
+
+    @staticmethod
+    def _partial_step(sampler, hit, active, null, state):
+        """At the partly null surfaces among ``active`` (``hit``: the SurfaceInteraction3f and
+        its BSDF): the walk passes with the probability c, the mean of the Null lobe's
+        transmission (its densities take c; its weight the transmission over c), else stops there
+        (the DensityFactor's stop probability 1 - c). ``state`` = (tr_hom, w, factor), updated in
+        place. Returns (the lanes that pass or meet a null interface, the factor)."""
+        tr_hom, w, factor = state
+        part, passed = partly_null(hit[1], hit[0], active)
+        c = mean(passed)
+        cross = part & (sampler.next_1d(part) < c)
+        tr_hom[cross] = mi.Spectrum(tr_hom * c)
+        w[cross] = mi.Spectrum(w * passed * safe_div(1.0, c))
+        stop = part & ~cross
+        return null | cross, DensityFactor(factor.sig_hom, dr.select(stop, factor.sig_het * (1.0 - c), factor.sig_het))
 
     def _cross_any(self, si, ray, end, medium):
         """The ray on from a null hit: towards ``end`` (a shadow or connection ray) or in the same

@@ -15,7 +15,7 @@ sampled across an edge times that edge's distance density ``pdf_l``."""
 import drjit as dr
 import mitsuba as mi
 
-from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor
+from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor, surface_stop
 from .rays import spawn
 from .vertex import Vertex
 
@@ -119,8 +119,12 @@ class PathVertex:
         return dr.select(self.in_medium, self.medium, medium_after(self.surf.si, d, self.medium))
 
     def density_factor(self, info):
-        """The vertex's media.DensityFactor: sigma_t at a medium vertex, (1, 1) at a surface."""
-        return DensityFactor.at(info, self.mei.medium, self.mei.sigma_t, self.in_medium)
+        """The vertex's media.DensityFactor: sigma_t at a medium vertex, (1, 1) at a surface
+        (at a partly null one, (1, the probability that a walk stops there): media.surface_stop)."""
+        f = DensityFactor.at(info, self.mei.medium, self.mei.sigma_t, self.in_medium)
+        if info.partial_null:
+            f.sig_het = f.sig_het * surface_stop(self.surf.bsdf, self.surf.si, ~self.in_medium)
+        return f
 
     def merge_factor(self, mis, info, offered=True):
         """A merge at this vertex relative to a surface merge (mis.MIS.merge_factor)."""

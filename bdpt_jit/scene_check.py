@@ -339,10 +339,18 @@ def _gray(medium) -> bool:
 def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
     """media.MediaInfo of the scene: whether it has media, a heterogeneous one (ratio and delta
     tracking traced), a chromatic homogeneous one (a channel chosen per distance sample), and
-    whether every medium is gray (beam merging: beams.py)."""
+    whether every medium is gray (beam merging: beams.py), whether a BSDF is partly null."""
     from .media import MediaInfo
     media = scene_media(scene, sensor)
     return MediaInfo(any_medium=bool(media),
                      heterogeneous=any(not m.is_homogeneous() for m in media),
                      chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media),
-                     gray=all(_gray(m) for m in media))
+                     gray=all(_gray(m) for m in media),
+                     partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()))
+
+
+def _partial_null(bsdf) -> bool:
+    """A BSDF with a Null lobe beside others (media.is_null: not an index-matched boundary)."""
+    from .media import _LOBES
+    flags = int(bsdf.flags()) if bsdf is not None else 0
+    return bool(flags & int(mi.BSDFFlags.Null)) and bool(flags & _LOBES)

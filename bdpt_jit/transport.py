@@ -79,12 +79,13 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
     return None, reverse_pdf_w(bsdf, bsdf_ctx, si, bs.wo, active, ctx.diffuse)
 
 
-def _sample(ctx, mode, sampler, v, active, reverse=True):
+def _sample(ctx, mode, sampler, v, active, reverse=True, null_lobe=None):
     """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (the direction's
     density per unit solid angle, the throughput factor, the outgoing direction in world space, the reverse density, active, the delta mask
     or None, the samples, the relative index of refraction crossed (None where the scene does
     not refract or the mode is importance: the roulette's, ``scatter``)). ``reverse``: whether
-    the reverse density is needed (mis.MIS.reads_reverse); else 0, and no BSDF call for it."""
+    the reverse density is needed (mis.MIS.reads_reverse); else 0, and no BSDF call for it.
+    ``null_lobe``: a list that gets the lanes that sampled a Null lobe (scatter)."""
     si = v.si
     if getattr(v, 'drawn', None) is not None:      # drawn with the emitter sample's evaluation (Vertex.eval_and_draw)
         bs, bsdf_w, (u1, u2) = v.drawn
@@ -93,6 +94,8 @@ def _sample(ctx, mode, sampler, v, active, reverse=True):
         bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, bsdf_context(mode), si, u1, u2, active)
     wo_world = si.to_world(bs.wo)
     factor = bsdf_w
+    if null_lobe is not None:
+        null_lobe.append(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null))
     if mode != RADIANCE:       # the adjoint's shading-normal factor (connect.adjoint_correction)
         corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
         active = active & ok
@@ -111,13 +114,19 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     mis.MIS; ``merge_here``: camera side, whether a merge at ``v`` is a strategy). Updates the
     throughput, the MIS quantities and the roulette. Returns (the next ray, the new Subpath,
     the delta mask or None without delta lobes, the lobe and direction samples)."""
+    null_lobe = None
     if ctx.media is None:
         # (a light subpath's always: with normal maps its exact adjoint comes with it, _reverse_pdf)
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = _sample(ctx, mode, sampler, v, sub.active,
                                                                                   mis.reads_reverse or mode != RADIANCE)
     else:       # a surface or a medium vertex (media_path.PathVertex)
+        null_lobe = [] if ctx.media.info.partial_null else None
+        surface_sample = _sample if null_lobe is None else \
+            (lambda *args: _sample(*args, null_lobe=null_lobe))
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = media_path.sample_direction(
-            ctx, mode, sampler, v, sub.active, _sample)
+            ctx, mode, sampler, v, sub.active, surface_sample)
+    if null_lobe:       # media: a walk that stopped at a partly null surface goes on through its other lobes
+        active = active & ~(null_lobe[0] & ~v.in_medium)        # (its Null lobe: media.MediumTracer.sample_distance)
     beta = sub.beta * factor
     camera_side = mode == RADIANCE
     if ctx.ad and not camera_side:   # the factor without derivatives: the edge's derivative comes with edge_ratio

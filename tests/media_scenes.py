@@ -459,11 +459,36 @@ def volumetric_caustic(glass=True, light_radius=0.05, sigma_t=0.3, albedo=0.9, r
                  fog=homogeneous(sigma_t, albedo), **objs)
 
 
+def thin_glass(res=16):
+    """(f') BSDFs with a Null lobe beside others in a scene with media (as Mitsuba's own test
+    scenes, tests/scenes/participating_media, put them): a thin dielectric sphere (radius 0.5 at
+    (0, 0, 0), IOR 1.5: it reflects ~8% and passes the rest straight on through its Null lobe)
+    filled with a scattering medium (sigma_t 2, albedo 0.9), on a diffuse floor (y = -0.6) before
+    a back wall (z = -1.2), and a card of ``mask`` (opacity 0.5 over a diffuse 0.8) half in front
+    of the sphere; a square area light (side 0.8, radiance 8) at y = 1.4 facing down and a
+    constant sky of 0.2. Camera at (0, 0.3, 2.6) in vacuum. volpath passes such surfaces on
+    shadow rays weighted by their null transmission, and does not count a pass through the Null
+    lobe as a bounce; bdpt's walks pass with that probability (media.MediumTracer)."""
+    return scene(
+        sensor=_camera(res, [0, 0.3, 2.6], [0, -0.1, 0], 45.0),
+        medium=homogeneous(2.0, 0.9),
+        glass={'type': 'sphere', 'center': [0, 0, 0], 'radius': 0.5, 'interior': ref('medium'),
+               'bsdf': {'type': 'thindielectric', 'int_ior': 1.5, 'ext_ior': 1.0}},
+        card={'type': 'rectangle', 'to_world': T().translate([0.45, 0.0, 0.8]).scale(0.35),
+              'bsdf': {'type': 'mask', 'opacity': 0.5, 'bsdf': diffuse(0.8)}},
+        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.6, 0]).rotate([1, 0, 0], -90).scale(3.0),
+               'bsdf': diffuse(0.6)},
+        wall={'type': 'rectangle', 'to_world': T().translate([0, 0, -1.2]).scale(3.0), 'bsdf': diffuse(0.5)},
+        light={'type': 'rectangle', 'to_world': T().translate([0, 1.4, 0]).rotate([1, 0, 0], 90).scale(0.4),
+               'bsdf': diffuse(0.0), 'emitter': {'type': 'area', 'radiance': rgb(8.0)}},
+        sky=constant_sky(0.2))
+
+
 # ------------------------------------------------------------------- the test harness
 BUILDERS = {
     'absorbing_sphere': absorbing_sphere, 'absorbing_cube': absorbing_cube, 'furnace': furnace,
     'single_scatter': single_scatter, 'fog_room': fog_room, 'grid_box': grid_box,
-    'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic,
+    'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic, 'thin_glass': thin_glass,
 }
 
 
