@@ -217,7 +217,7 @@ class CameraTracer:
         media: media_path.EdgeTerms (far end: the emitter point, a surface)."""
         c = self.ctx
         end = (ds.p, ds.n, c.emitters.error_at(ds))
-        media = (v.medium_towards(ds.d), c.emitter_media.medium(ds.emitter, ds.n, -ds.d, active))
+        media = (v.medium_towards(ds.d), c.emitter_media.medium(ds.emitter, ds.p, ds.n, -ds.d, active))
         factors = (v.density_factor(c.media.info), media_path.surface_start(dr.width(ds.p)))
         return media_path.edge_terms(c, self.ps.sampler, ray, end, media, factors, active)
 

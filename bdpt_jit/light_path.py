@@ -56,7 +56,7 @@ class LightTracer:
             y1 = si
         else:       # distance sampling from the emitter's medium (media_path.MediumHit)
             si, beta, pdf_fwd_l, pdf_rev_l = media_path.sample_step(
-                c, sampler, e.ray, c.emitter_media.medium(e.emitter, e.ps.n, e.d, active),
+                c, sampler, e.ray, c.emitter_media.medium(e.emitter, e.ps.p, e.ps.n, e.d, active),
                 media_path.surface_start(self.n), e.beta, active)
             y1 = si.interaction()
         if c.stats is not None:
@@ -95,7 +95,7 @@ class LightTracer:
         ok &= (cos_g > 0) & (dr.max(le) > 0)
         ray = spawn_to((ps.p, ps.n, e.err), (ds.p, mi.Normal3f(0.0), 0.0), ps.time, c.offsets.far_rel,
                        si_e.wavelengths)
-        et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.n, ds.d, ok), None, ok) \
+        et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.p, ps.n, ds.d, ok), None, ok) \
             if c.media is not None else None
         tr = visibility(c, ray, ok) if et is None else et.tr
         ok &= visible(tr)

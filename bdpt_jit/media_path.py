@@ -14,6 +14,7 @@ sampled across an edge times that edge's distance density ``pdf_l``."""
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor, surface_stop
 from .rays import spawn
@@ -214,43 +215,57 @@ class EmitterMedia:
     """The medium each emitter lies in, as the scene's geometry says: the emitter's own
     ``get_medium()`` where it has one; else, for an emitter with a position (area, point,
     spot), the medium of the nearest enclosing medium boundary (a shape that is a medium
-    transition), found by a ray from a point of the emitter; infinite emitters lie outside
-    every medium. Area emitters on a medium boundary emit into the side they face
-    (``medium``). Mitsuba's point lights report no medium unless given one, yet lie inside the
-    fog of a room; a light subpath started in vacuum there would disagree with every camera
-    subpath about the medium, so every connection to it would be refused."""
+    transition), found by rays from points of the emitter (``enclosing_medium``); infinite
+    emitters lie outside every medium. Area emitters on a medium boundary emit into the side they
+    face (``medium``). Mitsuba's point lights report no medium unless given one, yet lie inside
+    the fog of a room; a light subpath started in vacuum there would disagree with every camera
+    subpath about the medium, so every connection to it would be refused. An area emitter whose
+    probe points (PROBES x PROBES over its surface) find different media straddles a boundary (a
+    lamp half inside a glass of fog, as in Mitsuba's test scene ``homo_emitter_inside_medium``):
+    its medium is searched for per point and direction in the kernels (``per_point``; None where
+    no emitter needs it, and no kernel traces the search)."""
+    PROBES = 4
 
     def __init__(self, scene, offsets):
-        ids = {}
+        self.scene, self.offsets = scene, offsets
+        ids, varies = {}, {}
         for em in scene.emitters():
             key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
-            ids[key] = _medium_id(self.emitter_medium(scene, offsets, em))
+            found = self.emitter_media(scene, offsets, em)
+            ids[key] = found[0] if len(found) == 1 else 0
+            varies[key] = int(len(found) > 1)
         size = max(list(ids) + [0]) + 1
-        table = [0] * size
-        for k, v in ids.items():
-            table[k] = v
-        self.table = mi.UInt32(table)
+        self.table = mi.UInt32([ids.get(k, 0) for k in range(size)])
+        self.per_point = mi.UInt32([varies.get(k, 0) for k in range(size)]) if any(varies.values()) else None
 
-    @staticmethod
-    def emitter_medium(scene, offsets, em):
-        """The medium (or None) the emitter ``em`` lies in (class docstring; ``offsets``: the
-        scene's rays.RayOffsets, which the search's rays leave surfaces by)."""
+    @classmethod
+    def emitter_media(cls, scene, offsets, em):
+        """The medium ids (0: vacuum) the emitter ``em`` lies in: one where it has a medium of
+        its own, is infinite (0) or a single point; else those found from its probe points."""
         if em.get_medium() is not None:
-            return em.get_medium()
+            return [_medium_id(em.get_medium())]
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
-            return None
-        ps, _ = em.sample_position(0.0, mi.Point2f(0.5, 0.5))
-        n = mi.Vector3f(ps.n) if dr.squared_norm(ps.n)[0] > 0 else mi.Vector3f(0.0, 0.0, 1.0)
-        return enclosing_medium(scene, offsets, mi.Point3f(ps.p), n)
+            return [0]
+        g = (np.arange(cls.PROBES) + 0.5) / cls.PROBES
+        u, v = np.meshgrid(g, g)
+        ps, _ = em.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel()))
+        n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
+        found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True))
+        return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))
 
-    def medium(self, emitter, n, d, active=True):
-        """The medium a ray from a point of ``emitter`` (normal ``n``) in direction ``d`` starts in."""
+    def medium(self, emitter, p, n, d, active=True):
+        """The medium a ray from the point ``p`` of ``emitter`` (normal ``n``) in direction ``d``
+        starts in."""
         own = dr.reinterpret_array(mi.MediumPtr, dr.gather(mi.UInt32, self.table,
                                                             dr.reinterpret_array(mi.UInt32, emitter)))
         shape = emitter.get_shape()
         si = dr.zeros(mi.SurfaceInteraction3f, dr.width(n))
         si.shape, si.n, si.t = shape, n, 1.0
         on_boundary = active & (dr.reinterpret_array(mi.UInt32, shape) != 0) & si.is_medium_transition()
+        if self.per_point is not None:      # straddling emitters: the search from this point
+            search = active & ~on_boundary & (dr.gather(mi.UInt32, self.per_point,
+                                                        dr.reinterpret_array(mi.UInt32, emitter), active) != 0)
+            own = dr.select(search, enclosing_medium(self.scene, self.offsets, p, d, search), own)
         return dr.select(on_boundary, si.target_medium(d), own)
 
 
@@ -258,29 +273,24 @@ def _medium_id(medium):
     return 0 if medium is None else int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(medium))[0])
 
 
-def enclosing_medium(scene, offsets, p, d, max_hits=256):
-    """The medium around the point ``p`` (one lane): along the ray from ``p`` in direction
-    ``d``, the first shape that is a medium transition tells by the side the ray meets it on
-    (shapes that are not, opaque or not, lie inside one medium and are passed). None: vacuum."""
+@dr.syntax
+def enclosing_medium(scene, offsets, p, d, active, max_hits=64):
+    """The medium around the points ``p`` (per lane; null: vacuum): along the ray from each in
+    direction ``d``, the first shape that is a medium transition tells by the side the ray meets
+    it on (shapes that are not, opaque or not, lie inside one medium and are passed). A ray that
+    leaves the scene, or meets ``max_hits`` other shapes first, finds vacuum."""
     ray = mi.Ray3f(p, dr.normalize(d))
-    for _ in range(max_hits):
-        si = scene.ray_intersect(ray)
-        if not bool(si.is_valid()[0]):
-            return None
-        if bool(si.is_medium_transition()[0]):
-            m = si.target_medium(-ray.d)      # the side the ray came from
-            ident = int(dr.reinterpret_array(mi.UInt32, m)[0])
-            return None if ident == 0 else _medium_by_id(scene, ident)
-        ray = spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time)
-    return None
-
-
-def _medium_by_id(scene, ident):
-    for s in scene.shapes():
-        for m in (s.interior_medium(), s.exterior_medium()):
-            if m is not None and _medium_id(m) == ident:
-                return m
-    return None
+    found = dr.zeros(mi.MediumPtr, dr.width(p))
+    going, hits = mi.Bool(active), dr.zeros(mi.UInt32, dr.width(p))
+    while going:
+        si = scene.ray_intersect(ray, going)
+        going &= si.is_valid()
+        at = going & si.is_medium_transition()
+        found = dr.select(at, si.target_medium(-ray.d), found)      # the side the ray came from
+        hits += 1
+        going &= ~at & (hits < max_hits)
+        ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
+    return found
 
 
 def stored_vertex(v, medium, in_medium):

@@ -484,11 +484,30 @@ def thin_glass(res=16):
         sky=constant_sky(0.2))
 
 
+def straddling_light(res=16):
+    """(f'') An area light that declares no medium, half inside a fog sphere (a null boundary,
+    radius 0.8 at the origin, sigma_t 1.5, albedo 0.8): a square (side 0.8, radiance 4) tilted
+    towards the camera, centred on the sphere's surface at (0.8, 0, 0), so that some of its
+    points emit into the fog and the rest into vacuum (media_path.EmitterMedia searches its
+    medium per point). A diffuse floor (y = -0.9), a back wall (z = -1.5); no sky. The camera at
+    (0, 0.4, 3) in vacuum."""
+    return scene(
+        sensor=_camera(res, [0, 0.4, 3.0], [0.2, -0.1, 0], 50.0),
+        medium=homogeneous(1.5, 0.8),
+        fog=null_sphere(0.8),
+        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.9, 0]).rotate([1, 0, 0], -90).scale(3.0),
+               'bsdf': diffuse(0.6)},
+        wall={'type': 'rectangle', 'to_world': T().translate([0, 0, -1.5]).scale(3.0), 'bsdf': diffuse(0.5)},
+        light={'type': 'rectangle', 'to_world': T().translate([0.8, 0.0, 0.0]).rotate([0, 1, 0], -30).scale(0.4),
+               'bsdf': diffuse(0.0), 'emitter': {'type': 'area', 'radiance': rgb(4.0)}})
+
+
 # ------------------------------------------------------------------- the test harness
 BUILDERS = {
     'absorbing_sphere': absorbing_sphere, 'absorbing_cube': absorbing_cube, 'furnace': furnace,
     'single_scatter': single_scatter, 'fog_room': fog_room, 'grid_box': grid_box,
     'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic, 'thin_glass': thin_glass,
+    'straddling_light': straddling_light,
 }
 
 
