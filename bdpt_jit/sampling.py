@@ -29,7 +29,7 @@ class Sampling:
         (rays.RayOffsets.project_to_triangle: the mesh error bound assumes it). ``primary``: a
         camera ray's first hit."""
         si = self.ctx.scene.ray_intersect(ray, active)
-        return self.ctx.offsets.project_to_triangle(si, active)
+        return self.ctx.offsets.project_to_surface(si, active)
 
     def preliminary(self, ray, active):
         """scene.ray_intersect_preliminary: the hit without its surface interaction
@@ -40,7 +40,7 @@ class Sampling:
         """The surface interaction of the preliminary hit ``pi`` of ``ray``: what ``intersect``
         returns for ``ray`` (Mitsuba's scene.ray_intersect is these two steps)."""
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
-        return self.ctx.offsets.project_to_triangle(si, active)
+        return self.ctx.offsets.project_to_surface(si, active)
 
     def sample_bsdf(self, bsdf, mode, si, u1, u2, active):
         """connect.sample_bsdf (the diffuse table's lanes without a virtual call)."""

@@ -360,6 +360,35 @@ def test_instances_agree_with_path(technique):
           {'type': 'bdpt', 'max_depth': 3, 'technique': technique}, 256)
 
 
+def far_quadrics():
+    """A cylinder and an instanced SDF grid (a torus) under a constant sky, seen from 24 units
+    away as Mitsuba's test scene various_shapes sees them: Mitsuba's hit points on both lie off
+    the surface by more than the general offset bound (rays.py: cylinders projected back onto
+    the surface, SDF grids and shapes inside instances a wider bound)."""
+    n = 16
+    x = (np.arange(n) + 0.5) / n
+    X, Y, Z = np.meshgrid(x, x, x, indexing='ij')
+    sdf = np.hypot(np.hypot(X - 0.5, Y - 0.5) - 0.3, Z - 0.5) - 0.12       # a torus in the unit cube
+    grid = mi.TensorXf(sdf.astype(np.float32).transpose(2, 1, 0)[..., None].copy())
+    return {'type': 'scene',
+            'sensor': {'type': 'perspective', 'fov': 14.0, 'film': film(RES, RES),
+                       'to_world': T().look_at(origin=[-24, 0, 0], target=[0, 0, 0], up=[0, 0, 1])},
+            'sky': {'type': 'constant', 'radiance': rgb(1.0)},
+            'cylinder': {'type': 'cylinder', 'bsdf': diffuse([0.7, 0.5, 0.3]),
+                         'to_world': T().translate([0, 0.9, -0.8]).rotate([1, 0, 0], -35).scale([0.8, 0.8, 1.6])},
+            'group': {'type': 'shapegroup', 'torus': {'type': 'sdfgrid', 'grid': grid, 'bsdf': diffuse(0.6)}},
+            'torus': {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'group'},
+                      'to_world': T().translate([0, -1.6, -0.2]).rotate([1, 0, 0], 60).scale(2.2).translate([-0.5, -0.5, -0.5])}}
+
+
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+def test_far_quadrics_agree_with_path(technique):
+    """A cylinder and an instanced SDF grid seen from afar (far_quadrics): bdpt rendered them
+    3-50% dark before (rays from half of each cylinder point's hemisphere hit it again)."""
+    check('far_quadrics', far_quadrics, {'type': 'path', 'max_depth': 3}, 1024,
+          {'type': 'bdpt', 'max_depth': 3, 'technique': technique}, 256)
+
+
 # ---------------------------------------------------------------------------- refusals
 def test_aov_wrapper_refused_with_a_clear_message():
     """Mitsuba's aov integrator calls the nested integrator's per-sample sample(), which bdpt
