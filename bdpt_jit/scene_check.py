@@ -72,15 +72,18 @@ RADIANCE_TEXTURES_REFUSED = {'MeshAttribute': 'mesh_attribute'}
 # as well), and a transformed cylinder's ``eval_parameterization`` returns points up to ~1e-5 of
 # its size off the surface, where light subpaths start and intersect the cylinder again.
 TEXTURED_EMITTER_SHAPES = {'Rectangle': 'rectangle', 'Disk': 'disk', 'Sphere': 'sphere'}
-UV_CHECK_MAX_TRIANGLES = 20000
+UV_CHECK_MAX_TRIANGLES = 2_000_000
 UV_CHECK_GRID = 256
+UV_TOLERANCE = 1e-4          # uvs this far outside [0, 1] still count (a sphere mesh's 1.00001)
 
 
 def uv_map_is_one_to_one(mesh) -> bool:
     """A mesh's uv map is one-to-one (no two triangles overlap in uv space, all uvs in
-    [0, 1]^2), checked by rasterising its triangles' interiors on a 256^2 grid (meshes of up to
-    20000 triangles; larger ones are not checked and count as not one-to-one). Mitsuba samples
-    a textured area light on a mesh through this map (``eval_parameterization``); where it is
+    [0, 1]^2 up to UV_TOLERANCE), checked on a UV_CHECK_GRID^2 grid of points in uv space: each
+    triangle, shrunk a little towards its centre (shared edges are not overlap), is laid in
+    uv space at a height of its own, and a ray down through each point counts the triangles
+    above it (Mitsuba's ray tracing: meshes of up to UV_CHECK_MAX_TRIANGLES). Mitsuba samples a
+    textured area light on a mesh through this map (``eval_parameterization``); where it is
     one-to-one, Mitsuba's sampling and densities agree (a textured quad mesh: bdpt, lt and pt
     within 1.6 sigma of ptracer)."""
     params = mi.traverse(mesh)            # (an emitter's get_shape() gives the Shape interface)
@@ -93,23 +96,36 @@ def uv_map_is_one_to_one(mesh) -> bool:
     if len(faces) > UV_CHECK_MAX_TRIANGLES:
         return False
     uv = np.array(params[uv_key], dtype=np.float64).reshape(-1, 2)
-    if uv.size == 0 or uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
+    if uv.size == 0 or uv.min() < -UV_TOLERANCE or uv.max() > 1 + UV_TOLERANCE:
         return False
+    return _most_triangles_over_a_point(uv[faces]) <= 1
+
+
+def _most_triangles_over_a_point(tri):
+    """The largest number of the uv triangles ``tri`` (F x 3 x 2) over one point of the grid
+    (uv_map_is_one_to_one)."""
+    f = len(tri)
+    centre = tri.mean(axis=1, keepdims=True)
+    tri = centre + (tri - centre) * (1.0 - 1e-4)
+    height = (np.arange(f, dtype=np.float64) + 1.0) / (f + 1.0)        # one level a triangle, in (0, 1)
+    pos = np.concatenate([tri, np.broadcast_to(height[:, None, None], (f, 3, 1))], axis=2).reshape(-1, 3)
+    flat = mi.Mesh('uv check', 3 * f, f)
+    p = mi.traverse(flat)
+    p['vertex_positions'] = mi.Float(pos.astype(np.float32).ravel())
+    p['faces'] = mi.UInt32(np.arange(3 * f, dtype=np.uint32))
+    p.update()
+    scene = mi.load_dict({'type': 'scene', 'uv': flat})
     g = UV_CHECK_GRID
-    count = np.zeros((g, g), np.int32)
-    centres = (np.arange(g) + 0.5) / g
-    for a, b, c in uv[faces]:
-        lo = np.floor(np.minimum(np.minimum(a, b), c) * g).astype(int).clip(0, g - 1)
-        hi = np.ceil(np.maximum(np.maximum(a, b), c) * g).astype(int).clip(1, g)
-        x, y = np.meshgrid(centres[lo[0]:hi[0]], centres[lo[1]:hi[1]], indexing='ij')
-        d = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
-        if abs(d) < 1e-14:
-            continue
-        l1 = ((b[1] - c[1]) * (x - c[0]) + (c[0] - b[0]) * (y - c[1])) / d
-        l2 = ((c[1] - a[1]) * (x - c[0]) + (a[0] - c[0]) * (y - c[1])) / d
-        inside = (l1 > 1e-9) & (l2 > 1e-9) & (1 - l1 - l2 > 1e-9)      # interiors: shared edges are not overlap
-        count[lo[0]:hi[0], lo[1]:hi[1]] += inside
-    return int(count.max()) <= 1
+    u, v = np.meshgrid((np.arange(g) + 0.5) / g, (np.arange(g) + 0.5) / g)
+    ray = mi.Ray3f(mi.Point3f(u.ravel(), v.ravel(), np.full(g * g, 2.0)), mi.Vector3f(0.0, 0.0, -1.0))
+    count = np.zeros(g * g, np.int64)
+    step = 0.5 / (f + 1.0)
+    for _ in range(2):                   # (two triangles over a point settle it)
+        si = scene.ray_intersect(ray)
+        hit = np.array(si.is_valid())
+        count += hit
+        ray = mi.Ray3f(mi.Point3f(ray.o.x, ray.o.y, dr.select(si.is_valid(), si.p.z - step, -1.0)), ray.d)
+    return int(count.max())
 
 
 def _plugin_name(obj) -> str:
