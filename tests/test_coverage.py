@@ -414,7 +414,7 @@ def far_quadrics():
                       'to_world': T().translate([0, -1.6, -0.2]).rotate([1, 0, 0], 60).scale(2.2).translate([-0.5, -0.5, -0.5])}}
 
 
-@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+@pytest.mark.parametrize('technique', ['bdpt', pytest.param('pt', marks=pytest.mark.slow)])
 def test_far_quadrics_agree_with_path(technique):
     """A cylinder and an instanced SDF grid seen from afar (far_quadrics): bdpt rendered them
     3-50% dark before (rays from half of each cylinder point's hemisphere hit it again)."""

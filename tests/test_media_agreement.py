@@ -182,9 +182,9 @@ AGREE = [
     ('volumetric_caustic', {'light_radius': 0.15}, 6, 'bdpt', 'power', 64, 256),
     ('volumetric_caustic', {'light_radius': 0.15}, 6, 'vcm', 'power', 64, 256),
     ('thin_glass', {}, 6, 'bdpt', 'power', 256, 256),     # Null lobes beside others: passed, no bounce
-    ('thin_glass', {}, 6, 'pt', 'power', 256, 256),
+    pytest.param('thin_glass', {}, 6, 'pt', 'power', 256, 256, marks=_SLOW),
     ('straddling_light', {}, 6, 'bdpt', 'power', 64, 256),   # a light half in fog: its medium per point
-    ('straddling_light', {}, 6, 'lt', 'power', 64, 256),
+    pytest.param('straddling_light', {}, 6, 'lt', 'power', 64, 256, marks=_SLOW),
 ]
 
 
