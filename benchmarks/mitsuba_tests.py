@@ -63,6 +63,11 @@ def reference(path, stem):
     return [a[..., None] if a.ndim == 2 else a for a in out]
 
 
+def luminance(rgb):
+    """Y of linear sRGB (Rec. 709 weights), keeping a channel axis of one."""
+    return (rgb @ np.array([0.2126, 0.7152, 0.0722]))[..., None]
+
+
 def blocks(a, b=4):
     """4x4 block means of the images ``a`` (... x H x W x C)."""
     h, w = a.shape[-3] // b * b, a.shape[-2] // b * b
@@ -97,6 +102,8 @@ def run(path, args):
         cause = e.__cause__ or e
         return f'{stem} [{integrator}, max_depth {depth}]: {type(cause).__name__}: {str(cause).splitlines()[0][:300]}'
     ref, var = refs
+    if images.shape[-1] == 1 and ref.shape[-1] == 3:    # mono: the references are RGB, compared by luminance
+        ref, var = luminance(ref), luminance(np.sqrt(var)) ** 2     # (var: the bound with full correlation)
     images = images[..., :ref.shape[-1]]
     z, bz = z_scores(images, ref, var, args.spp)
     return (f'{stem} [{integrator}, max_depth {depth}] {time.time() - t0:.1f} s, finite {np.isfinite(images).all()}, '
