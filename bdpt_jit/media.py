@@ -58,9 +58,11 @@ class MediaInfo:
     ``thindielectric``, ``mask``; a walk passing one through its Null lobe counts no bounce there,
     transport.scatter). Built by scene_check.media_info."""
 
-    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False):
+    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False,
+                 varying_albedo=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
         self.gray, self.partial_null = gray, partial_null
+        self.varying_albedo = varying_albedo    # a homogeneous medium's albedo is a volume (MediumTracer._collide)
 
 
 def has_medium(medium):
@@ -416,7 +418,11 @@ class MediumTracer:
         collided = hom & (t < length)
         t_end = dr.select(collided, t, length)
         tr_hom = dr.select(hom, homogeneous_tr(mei.sigma_t, t_end), 1.0)
-        mei.p, mei.t = ray(t_end), mi.Float(t_end)     # (homogeneous: the same coefficients everywhere)
+        mei.p, mei.t = ray(t_end), mi.Float(t_end)     # (homogeneous: the same sigma_t everywhere)
+        if self.info.varying_albedo:        # its albedo a volume: sigma_s where the collision is
+            sigma_s, sigma_n, sigma_t = medium.get_scattering_coefficients(mei, collided)
+            mei.sigma_s, mei.sigma_n, mei.sigma_t = (dr.select(collided, a, b) for a, b in
+                                                     ((sigma_s, mei.sigma_s), (sigma_n, mei.sigma_n), (sigma_t, mei.sigma_t)))
         w, tmaj = dr.full(mi.Spectrum, 1.0, dr.width(t)), mi.Float(1.0)
         factor = DensityFactor(dr.select(collided, mei.sigma_t, 1.0), dr.full(mi.Float, 1.0, dr.width(t)))
         if het is not None:

@@ -362,7 +362,13 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
                      heterogeneous=any(not m.is_homogeneous() for m in media),
                      chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media),
                      gray=all(_gray(m) for m in media),
-                     partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()))
+                     partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()),
+                     varying_albedo=any(m.is_homogeneous() and _varying_albedo(m) for m in media))
+
+
+def _varying_albedo(medium) -> bool:
+    """A medium whose albedo is a volume other than a constant (a ``gridvolume``)."""
+    return any(k.startswith('albedo.') and not k.startswith('albedo.value') for k in mi.traverse(medium).keys())
 
 
 def _partial_null(bsdf) -> bool:

@@ -502,12 +502,34 @@ def straddling_light(res=16):
                'bsdf': diffuse(0.0), 'emitter': {'type': 'area', 'radiance': rgb(4.0)}})
 
 
+def albedo_grid(res=16):
+    """(f''') A homogeneous medium whose albedo is a volume (Mitsuba allows a ``gridvolume``
+    there, as its docs scene medium_homogeneous_sss_textured does): sigma_t 3 in a null cube
+    [-0.6, 0.6]^3, its albedo 0.05 and 0.95 in alternate octants (nearest), HG g 0.3; a diffuse
+    floor (y = -0.65), a spherical light (radius 0.1, radiance 100) at (0.5, 1.5, 0.5), a sky of
+    0.2. The camera at (0, 1.6, 2.6) in vacuum. A collision's sigma_s is the albedo where it
+    happens (before: where the ray left)."""
+    cells = np.indices((2, 2, 2)).sum(axis=0) % 2
+    med = homogeneous(3.0, 0.5, 0.3)
+    med['albedo'] = {'type': 'gridvolume', 'filter_type': 'nearest',
+                     'data': mi.TensorXf(np.where(cells == 1, 0.95, 0.05).astype(np.float32)[..., None]),
+                     'to_world': T().translate([-0.6, -0.6, -0.6]).scale(1.2)}
+    return scene(
+        sensor=_camera(res, [0, 1.6, 2.6], [0, -0.2, 0], 45.0),
+        medium=med, box=null_cube(0.6),
+        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.65, 0]).rotate([1, 0, 0], -90).scale(3.0),
+               'bsdf': diffuse(0.5)},
+        light={'type': 'sphere', 'center': [0.5, 1.5, 0.5], 'radius': 0.1,
+               'emitter': {'type': 'area', 'radiance': rgb(100.0)}},
+        sky=constant_sky(0.2))
+
+
 # ------------------------------------------------------------------- the test harness
 BUILDERS = {
     'absorbing_sphere': absorbing_sphere, 'absorbing_cube': absorbing_cube, 'furnace': furnace,
     'single_scatter': single_scatter, 'fog_room': fog_room, 'grid_box': grid_box,
     'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic, 'thin_glass': thin_glass,
-    'straddling_light': straddling_light,
+    'straddling_light': straddling_light, 'albedo_grid': albedo_grid,
 }
 
 

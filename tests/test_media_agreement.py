@@ -185,6 +185,7 @@ AGREE = [
     pytest.param('thin_glass', {}, 6, 'pt', 'power', 256, 256, marks=_SLOW),
     ('straddling_light', {}, 6, 'bdpt', 'power', 64, 256),   # a light half in fog: its medium per point
     pytest.param('straddling_light', {}, 6, 'lt', 'power', 64, 256, marks=_SLOW),
+    ('albedo_grid', {}, 6, 'bdpt', 'power', 64, 256),        # an albedo volume: sigma_s at the collision
 ]
 
 
