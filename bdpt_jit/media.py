@@ -55,14 +55,14 @@ class MediaInfo:
     chosen per distance sample), gray (every medium's sigma_t is the same in all channels, so a
     point a distance-sampled ray passes has survived with the probability T: merging inside
     media by beams, beams.py), partial_null (a shape's BSDF has a Null lobe beside others:
-    ``thindielectric``, ``mask``; a walk passing one through its Null lobe counts no bounce there,
-    transport.scatter). Built by scene_check.media_info."""
+    ``thindielectric``, ``mask``; walks and edges pass such a surface with its Null lobe's
+    probability, MediumTracer), varying_albedo (a homogeneous medium's albedo is a volume).
+    Built by scene_check.media_info."""
 
     def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False,
                  varying_albedo=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
-        self.gray, self.partial_null = gray, partial_null
-        self.varying_albedo = varying_albedo    # a homogeneous medium's albedo is a volume (MediumTracer._collide)
+        self.gray, self.partial_null, self.varying_albedo = gray, partial_null, varying_albedo
 
 
 def has_medium(medium):
@@ -109,10 +109,11 @@ _LOBES = int(mi.BSDFFlags.Reflection | mi.BSDFFlags.Transmission) & ~int(mi.BSDF
 def is_null(bsdf, si):
     """Lanes whose hit ``si`` is an index-matched boundary: a BSDF whose only lobe is Null (the
     ``null`` plugin). A BSDF with a Null lobe beside others (``thindielectric``, whose straight
-    transmission is flagged Null; ``mask`` of opacity below 1) is a surface like any other: a walk
-    samples it, and may pass it through its Null lobe (a delta vertex that volpath does not count
-    as a bounce, transport.scatter), and an edge that meets it stops there. volpath's shadow rays
-    pass it weighted by its null transmission instead; both estimate the same light."""
+    transmission is flagged Null; ``mask`` of opacity below 1) is ``partly_null``: a walk passes it
+    with that lobe's probability, counting no bounce, else stops there as a surface vertex
+    (MediumTracer._partial_step; a vertex that then draws the Null lobe again ends,
+    transport.scatter), and an edge passes it weighted by that lobe's transmission, as volpath's
+    shadow rays do."""
     flags = bsdf.flags()
     return si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
 
@@ -330,8 +331,9 @@ class MediumTracer:
         """The transmittance of the shadow ray ``ray`` (from a vertex in ``medium`` to the point
         ``end`` = (q, n_q, err_q), as rays.spawn_to takes it; None for a ray to infinity, towards
         an environment or directional emitter), crossing null interfaces (each
-        a hit whose BSDF has the Null flag; the medium changes by medium_after) and stopping
-        with 0 at any other surface. ``medium_end``: the medium the far end says it is in
+        a hit whose BSDF's only lobe is Null; the medium changes by medium_after), passing partly
+        null surfaces weighted by their Null lobe's transmission (is_null) and stopping with 0 at
+        any other surface. ``medium_end``: the medium the far end says it is in
         (None: not checked); where the walk arrives in another, the edge is not made (T = 0)
         and counted as a medium inconsistency. ``tracking`` False: only the distance densities
         are needed (no ratio tracking; ``tr`` then holds T_maj in heterogeneous parts). Returns
