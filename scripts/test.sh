@@ -12,9 +12,24 @@ bash "$root/scripts/bootstrap.sh"
 cd "$root"
 cores="$(nproc 2>/dev/null || echo 1)"
 workers="${BDPT_TEST_WORKERS:-$(( cores < 2 ? 1 : 2 ))}"
-if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
-    exec .venv/bin/python -m pytest -q "$@"
+run() {
+    if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
+        .venv/bin/python -m pytest -q "$@"
+    else
+        # --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist
+        # 3.8 replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
+        .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"
+    fi
+}
+if [ "$#" -gt 0 ]; then
+    run "$@"
+    exit
 fi
-# --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist 3.8
-# replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
-exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"
+# The whole suite: the Ray tests in a process of their own, after the rest. Ray leaves native
+# threads in the process that called ray.init (9 of its 22 still there after ray.shutdown, Ray
+# 2.60), and a CI run (stop 44) lost the xdist worker that had run tests/test_cluster.py to a
+# segmentation fault in a later file.
+status=0
+run --ignore=tests/test_cluster.py || status=$?
+.venv/bin/python -m pytest -q tests/test_cluster.py || status=$(( status ? status : $? ))
+exit "$status"
