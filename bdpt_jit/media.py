@@ -31,7 +31,12 @@ Distance densities (``DistanceSample.pdf_fwd``/``pdf_rev``, ``EdgeTransmittance.
   path, computed the same way by every strategy, keeps the weights a partition of unity, so the
   estimator stays unbiased; the proxy is zero exactly where the true density is (sigma_t = 0),
   so no strategy that can sample a path gets weight 0 from it. Only the variance depends on how
-  close the proxy is to sigma_t T (exact where sigma_t = m). Mitsuba 0.6 instead integrates tau
+  close the proxy is to sigma_t T (exact where sigma_t = m). T_maj is floored at TMAJ_FLOOR
+  (1e-6) in the densities: exp(-m L) is 0 in float32 beyond m L ~ 104 (and its square in the
+  power heuristic leaves the float range sooner), and a strategy whose density came out 0 that
+  way lost its share of a path whose ratio-tracked transmittance was far above T_maj (a grid
+  with empty voxels under a large majorant: 2-3% too bright before the floor). Any floor keeps
+  the proxy deterministic, so the weights still sum to one. Mitsuba 0.6 instead integrates tau
   by Simpson quadrature (``method=simpson``).
 
 Both kinds in one edge multiply (the channel choice applies in the homogeneous parts only).
@@ -44,6 +49,7 @@ from .jitmath import safe_div, finite_or_zero
 from .rays import spawn, spawn_to
 
 MAX_CROSSINGS = 64        # null interfaces one segment may cross (beyond: treated as blocked)
+TMAJ_FLOOR = 1e-6         # the MIS proxy T_maj's least value (module docstring: float32 underflow)
 PHASE_RADIANCE = mi.PhaseFunctionContext(None, mi.TransportMode.Radiance)
 PHASE_IMPORTANCE = mi.PhaseFunctionContext(None, mi.TransportMode.Importance)
 
@@ -200,8 +206,9 @@ class DensityFactor:
 def pdf_l(tr_hom, tmaj, factor):
     """The distance density of an edge (per unit length at a medium vertex, a probability at a
     surface) from its homogeneous per-channel transmittance ``tr_hom``, the majorant
-    transmittance ``tmaj`` of its heterogeneous parts, and the end's DensityFactor."""
-    return finite_or_zero(mean(tr_hom * factor.sig_hom) * factor.sig_het * tmaj)
+    transmittance ``tmaj`` of its heterogeneous parts (floored: TMAJ_FLOOR), and the end's
+    DensityFactor."""
+    return finite_or_zero(mean(tr_hom * factor.sig_hom) * factor.sig_het * dr.maximum(tmaj, TMAJ_FLOOR))
 
 
 

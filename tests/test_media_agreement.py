@@ -186,6 +186,8 @@ AGREE = [
     ('straddling_light', {}, 6, 'bdpt', 'power', 64, 256),   # a light half in fog: its medium per point
     pytest.param('straddling_light', {}, 6, 'lt', 'power', 64, 256, marks=_SLOW),
     ('albedo_grid', {}, 6, 'bdpt', 'power', 64, 256),        # an albedo volume: sigma_s at the collision
+    ('grid_box', {'scale': 150.0}, 5, 'bdpt', 'power', 64, 256),    # exp(-m L) below float32: T_maj floored
+    pytest.param('grid_box', {'scale': 150.0}, 5, 'pt', 'power', 256, 256, marks=_SLOW),
 ]
 
 
