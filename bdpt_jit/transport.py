@@ -79,6 +79,12 @@ def _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta):
     return None, reverse_pdf_w(bsdf, bsdf_ctx, si, bs.wo, active, ctx.diffuse)
 
 
+def sample_kept(pdf_w, weight):
+    """The lanes of a BSDF sample that a subpath continues from: density and weight > 0, which
+    Mitsuba's NaN densities (its microfacet BSDFs' at u = 0 or a tangent wi) fail."""
+    return (pdf_w > 0) & (dr.max(weight) > 0)
+
+
 def _sample(ctx, mode, sampler, v, active, reverse=True, null_lobe=None):
     """The BSDF sampled at ``v`` (lobe and direction samples drawn here): (the direction's
     density per unit solid angle, the throughput factor, the outgoing direction in world space, the reverse density, active, the delta mask
@@ -100,7 +106,7 @@ def _sample(ctx, mode, sampler, v, active, reverse=True, null_lobe=None):
         corr, ok = adjoint_correction(si, bs.wo, wo_world, active)
         active = active & ok
         factor = bsdf_w * corr
-    active = active & (bs.pdf > 0) & (dr.max(bsdf_w) > 0)
+    active = active & sample_kept(bs.pdf, bsdf_w)
     is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) if ctx.has_delta else None
     exact, pdf_rev_w = _reverse_pdf(ctx, mode, v, bs, wo_world, active, is_delta) if reverse else (None, mi.Float(0.0))
     if exact is not None:

@@ -596,13 +596,21 @@ BSDFS = {
 }
 
 
+_SCENES = []     # bsdf_vertices' scenes, kept alive (its docstring)
+
+
 def bsdf_vertices(bsdf_dict, wi_list):
     """SurfaceInteractions on a rectangle with ``bsdf_dict`` (a real intersection, so textures
-    and normal maps have their uv and tangents), one per (wi, u1, u2) combination."""
+    and normal maps have their uv and tangents), one per (wi, u1, u2) combination. The scene is
+    kept (``_SCENES``): the intersection and ``si.bsdf()`` are traced, not evaluated, when this
+    returns, and a scene freed before their kernel runs leaves it a freed BVH (a segmentation
+    fault) and its shape's registry slot, in which a later object's BSDF answers (a null BSDF's
+    density 1 everywhere; both seen after test_media_phase in one process)."""
     b = dict(bsdf_dict)
     if b.get('type') == 'normalmap':
         b['normalmap'] = dict(b['normalmap'], filename=sc.normal_map_file())
     scene = mi.load_dict({'type': 'scene', 'r': {'type': 'rectangle', 'bsdf': b}})
+    _SCENES.append(scene)
     u1, a, c = edge_grid(3)
     m = dr.width(u1)
     wi = np.array(wi_list, dtype=np.float64)
@@ -619,35 +627,47 @@ def bsdf_vertices(bsdf_dict, wi_list):
 WI = [[0, 0, 1], [0.5, 0, 0.8], [1, 0, 1e-7], [1, 0, 0], [0.3, 0.2, -0.9], [0, 1, -1e-7]]
 
 
+def kept_lanes(x, kept):
+    """The entries of the Dr.Jit array ``x`` (a Float, or a 3-vector as (3, n)) in the lanes ``kept``."""
+    a = np.array(x, dtype=np.float64)
+    return a[..., kept] if a.shape[-1] == kept.size else a
+
+
 @pytest.mark.parametrize('bsdf', list(BSDFS))
 def test_bsdf_sampling_edge_values(bsdf):
     """Every BSDF kind, incident directions from the normal to exactly tangent and below, and
     every combination of 0, 0.5, 1 - 2^-24 for the lobe and direction samples, in both
-    transport modes: the sampled weight and density, the evaluation and both densities of
+    transport modes. Mitsuba's own sample may be NaN there (its microfacet BSDFs' densities at
+    u = 0 or a tangent wi); the renderer keeps a lane only where the density and the weight are
+    > 0 (`transport.sample_kept`), which NaN fails. In the kept lanes (some in every case) the
+    sampled weight, density and direction, the evaluation and both densities of
     `connect.eval_camera_vertex` / `eval_light_vertex`, the reverse density and the adjoint
-    shading-normal factor are finite and non-negative, whatever the sample (a density 0
-    included: `mis.on_scatter` then has 1/pdf guarded)."""
+    shading-normal factor are finite and non-negative, and `mis.on_scatter`'s quantities finite."""
     from bdpt_jit import connect
     from bdpt_jit.mis import MIS
+    from bdpt_jit.transport import sample_kept
     si, b, u1, u2 = bsdf_vertices(BSDFS[bsdf], WI)
     for ctx in (connect.CTX_RADIANCE, connect.CTX_IMPORTANCE):
         bs, w = b.sample(ctx, si, u1, u2)
-        for name, x in (('pdf', bs.pdf), ('weight', w), ('wo', bs.wo)):
-            assert finite(x), f'{bsdf}: sample {name}'
-        assert np.all(np.array(bs.pdf) >= 0) and np.all(np.array(w) >= 0)
+        kept = sample_kept(bs.pdf, w)
         wo_world = si.to_world(bs.wo)
-        rev = connect.reverse_pdf_w(b, ctx, si, bs.wo, mi.Bool(True))
-        corr, valid = connect.adjoint_correction(si, bs.wo, wo_world, mi.Bool(True))
-        assert finite(rev) and finite(corr), f'{bsdf}: reverse pdf / adjoint factor'
-        f, pf, pr = connect.eval_camera_vertex(si, b, wo_world, mi.Bool(True))
-        fl, pfl, prl, _ = connect.eval_light_vertex(si, b, wo_world, mi.Bool(True))
-        for name, x in (('f', f), ('pdf', pf), ('rev', pr), ('f*', fl), ('pdf*', pfl), ('rev*', prl)):
-            assert finite(x), f'{bsdf}: eval {name}'
-            assert np.all(np.array(x) >= 0), f'{bsdf}: eval {name} < 0'
+        out = {'pdf': bs.pdf, 'weight': w, 'wo': bs.wo}
+        out['rev'] = connect.reverse_pdf_w(b, ctx, si, bs.wo, kept)
+        out['adjoint'] = connect.adjoint_correction(si, bs.wo, wo_world, kept)[0]
+        out['f'], out['pdf_e'], out['rev_e'] = connect.eval_camera_vertex(si, b, wo_world, kept)
+        out['f*'], out['pdf*'], out['rev*'], _ = connect.eval_light_vertex(si, b, wo_world, kept)
         for kind in ('power', 'balance', 'uniform'):
-            d_vcm, d_vc = MIS(kind).on_scatter(mi.Float(1.0), mi.Float(1.0), dr.abs(dr.dot(si.n, wo_world)),
-                                               bs.pdf, rev, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
-            assert finite(d_vcm) and finite(d_vc), f'{bsdf}: on_scatter ({kind})'
+            out[kind] = MIS(kind).on_scatter(mi.Float(1.0), mi.Float(1.0), dr.abs(dr.dot(si.n, wo_world)),
+                                             bs.pdf, out['rev'], mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        dr.eval(kept, out)        # one kernel (each conversion alone would trace and run its own)
+        k = np.array(kept, dtype=bool)
+        assert k.any(), f'{bsdf}: no sample kept'
+        for name, x in out.items():
+            for part in (x if isinstance(x, tuple) else (x,)):
+                assert np.all(np.isfinite(kept_lanes(part, k))), f'{bsdf}: {name} not finite'
+        assert np.all(kept_lanes(bs.pdf, k) > 0)
+        for name in ('weight', 'rev', 'adjoint', 'f', 'pdf_e', 'rev_e', 'f*', 'pdf*', 'rev*'):
+            assert np.all(kept_lanes(out[name], k) >= 0), f'{bsdf}: {name} < 0'
 
 
 @pytest.mark.parametrize('camera', ['perspective', 'thinlens', 'perspective_crop', 'perspective_1x1'])
