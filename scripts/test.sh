@@ -4,7 +4,7 @@
 # The tests run in pytest-xdist workers, one per core up to 2 (BDPT_TEST_WORKERS=N sets N; 1 runs
 # one process), each test file on one worker (--dist loadfile), so that a file's kernels are
 # compiled once: Dr.Jit compiles a kernel on one thread, and a second worker renders meanwhile.
-# Measured on 2 cores with an empty kernel cache and no tests/.refcache (a fresh clone): 13 min 21 s at 781fe4f, 14 min 9 s at 58b052a (with the media tests), 13 min 25 s at 1f6b9f2 (4371 tests), 17 min 4 s at 3b8289d (4683 tests; 15 min 49 s here at 8420284, whose suite the CI service ran in 690 s), 16 min 23 s at 3d15d79 (4686 tests, pytest's own 15 min 45 s), 16 min 57 s at cf85ad3 (4984 tests, pytest's 16 min 31 s), 17 min 42 s at 96dbc6a (pytest's 17 min 12 s), 16 min 26 s at 52e07fc (pytest's 15 min 59 s), 16 min 59 s at 1c3912c (pytest's 16 min 30 s), 16 min 42 s at da75fdc (pytest's 16 min 14 s), 13 min 43 s at 4b01e46 with the references stored in tests/references (pytest's 13 min 18 s), 13 min 52 s at 76909b9 (5011 tests, pytest's 13 min 27 s), 13 min 42 s at 70f9a27 (5018 tests, pytest's 13 min 10 s), 13 min 51 s at e9413f6 (5021 tests, pytest's 13 min 24 s), 13 min 46 s at 1367906 (5022 tests, pytest's 13 min 19 s), 13 min 30 s at 173cada (5025 tests, pytest's 13 min 1 s), 13 min 28 s at 377232d (5026 tests, pytest's 12 min 55 s), 13 min 39 s at 4d5c5e6 (pytest's 13 min 10 s), 13 min 4 s at 3c0d0a6 (5033 tests, pytest's 12 min 37 s), 13 min 26 s at 7196e5a (5037 tests, pytest's 12 min 59 s), 14 min 12 s at d2583a3 (5038 tests, pytest's 13 min 42 s), 14 min 12 s at 8a05e8d with the Ray tests in a second process (pytest 13 min 24 s + 22 s)
+# Measured on 2 cores with an empty kernel cache and no tests/.refcache (a fresh clone): 13 min 21 s at 781fe4f, 14 min 9 s at 58b052a (with the media tests), 13 min 25 s at 1f6b9f2 (4371 tests), 17 min 4 s at 3b8289d (4683 tests; 15 min 49 s here at 8420284, whose suite the CI service ran in 690 s), 16 min 23 s at 3d15d79 (4686 tests, pytest's own 15 min 45 s), 16 min 57 s at cf85ad3 (4984 tests, pytest's 16 min 31 s), 17 min 42 s at 96dbc6a (pytest's 17 min 12 s), 16 min 26 s at 52e07fc (pytest's 15 min 59 s), 16 min 59 s at 1c3912c (pytest's 16 min 30 s), 16 min 42 s at da75fdc (pytest's 16 min 14 s), 13 min 43 s at 4b01e46 with the references stored in tests/references (pytest's 13 min 18 s), 13 min 52 s at 76909b9 (5011 tests, pytest's 13 min 27 s), 13 min 42 s at 70f9a27 (5018 tests, pytest's 13 min 10 s), 13 min 51 s at e9413f6 (5021 tests, pytest's 13 min 24 s), 13 min 46 s at 1367906 (5022 tests, pytest's 13 min 19 s), 13 min 30 s at 173cada (5025 tests, pytest's 13 min 1 s), 13 min 28 s at 377232d (5026 tests, pytest's 12 min 55 s), 13 min 39 s at 4d5c5e6 (pytest's 13 min 10 s), 13 min 4 s at 3c0d0a6 (5033 tests, pytest's 12 min 37 s), 13 min 26 s at 7196e5a (5037 tests, pytest's 12 min 59 s), 14 min 12 s at d2583a3 (5038 tests, pytest's 13 min 42 s)
 # with two workers, against 20 min 40 s in one process (docs/performance.md, sixth session).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -12,24 +12,9 @@ bash "$root/scripts/bootstrap.sh"
 cd "$root"
 cores="$(nproc 2>/dev/null || echo 1)"
 workers="${BDPT_TEST_WORKERS:-$(( cores < 2 ? 1 : 2 ))}"
-run() {
-    if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
-        .venv/bin/python -m pytest -q "$@"
-    else
-        # --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist
-        # 3.8 replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
-        .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"
-    fi
-}
-if [ "$#" -gt 0 ]; then
-    run "$@"
-    exit
+if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
+    exec .venv/bin/python -m pytest -q "$@"
 fi
-# The whole suite: the Ray tests in a process of their own, after the rest. Ray leaves native
-# threads in the process that called ray.init (9 of its 22 still there after ray.shutdown, Ray
-# 2.60), and a CI run (stop 44) lost the xdist worker that had run tests/test_cluster.py to a
-# segmentation fault in a later file.
-status=0
-run --ignore=tests/test_cluster.py || status=$?
-.venv/bin/python -m pytest -q tests/test_cluster.py || status=$(( status ? status : $? ))
-exit "$status"
+# --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist 3.8
+# replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
+exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"
