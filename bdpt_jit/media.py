@@ -35,7 +35,7 @@ Distance densities (``DistanceSample.pdf_fwd``/``pdf_rev``, ``EdgeTransmittance.
   (1e-6) in the densities: exp(-m L) is 0 in float32 beyond m L ~ 104 (and its square in the
   power heuristic leaves the float range sooner), and a strategy whose density came out 0 that
   way lost its share of a path whose ratio-tracked transmittance was far above T_maj (a grid
-  with empty voxels under a large majorant: 2-3% too bright before the floor). Any floor keeps
+  with empty voxels under a large majorant: images 1-3% off before the floor). Any floor keeps
   the proxy deterministic, so the weights still sum to one. Mitsuba 0.6 instead integrates tau
   by Simpson quadrature (``method=simpson``).
 
