@@ -3,10 +3,61 @@ film's reconstruction filter and are normalised by their filter weights, as Mits
 ``path`` does; light-image splats (t=1) go into a second block with normalised filter weights
 and no weight channel, as Mitsuba's ``ptracer`` does. The two are developed apart and summed.
 
+Both must estimate the same pixel, or their MIS combination is biased. Camera samples lie inside
+the crop, so a pixel near its edge averages them under its filter cut at the edge and normalised
+again (``path``'s pixel). A splat's filter weights are normalised over its whole footprint, and
+splats from outside the crop never come, so with a filter wider than a pixel (Mitsuba's default
+``gaussian``, ``tent``, ...) the light image's edge pixels lack the filter's mass beyond the edge:
+a uniform emitter filling the view came out 0.84 in ``ptracer``'s and lt's edge pixels with the
+Gaussian filter, 0.91 in bdpt's. ``splat_gain`` divides each light-image pixel by the share of its
+filter's weight that falls inside the crop, which makes its pixel ``path``'s.
+
 One place holds the light image's scale (see ``splat_scale``)."""
+
+import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
+COVERAGE_QUADRATURE = 64        # splat positions a pixel in splat_coverage's quadrature
+
+
+def splat_coverage(rfilter, length: int):
+    """Per pixel of a row of ``length`` pixels, the share of its filter's weight that splats
+    from positions inside the row bring it (1 away from the ends). A midpoint quadrature through
+    Mitsuba's own normalised ImageBlock, so the share is the one its splats get; the filters are
+    separable, so a crop's share is the product of its row's and its column's."""
+    def row(n):
+        block = mi.ImageBlock(mi.ScalarVector2u(n, 1), mi.ScalarPoint2i(0, 0), 1,
+                              rfilter=rfilter, normalize=True)
+        k = dr.arange(mi.Float, n * COVERAGE_QUADRATURE)
+        pos = mi.Point2f((k + 0.5) / COVERAGE_QUADRATURE, 0.5)
+        block.put(pos, [dr.full(mi.Float, 1.0 / COVERAGE_QUADRATURE, n * COVERAGE_QUADRATURE)])
+        return np.array(block.tensor(), dtype=np.float64).reshape(n)
+    m = 2 * math.ceil(rfilter.radius()) + 3          # its middle pixel's footprint lies inside
+    return row(length) / row(m)[m // 2]              # the y axis' constant share divided out
+
+
+_GAINS = {}                     # (variant, filter, width, height) -> splat_gain's array
+
+
+def _gain(rfilter, width, height):
+    key = (mi.variant(), str(rfilter), width, height)
+    if key not in _GAINS:
+        gain = 1.0 / np.outer(splat_coverage(rfilter, height), splat_coverage(rfilter, width))
+        _GAINS[key] = gain.astype(np.float32).reshape(height, width, 1)
+    return mi.TensorXf(_GAINS[key])
+
+
+def splat_gain(film: mi.Film):
+    """The light image's per-pixel factor (H x W x 1) that makes its pixels the camera image's
+    (module docstring); None for filters that spill no weight into a neighbour (``box``)."""
+    rfilter = film.rfilter()
+    if rfilter.radius() <= 0.5 + 1e-6:
+        return None
+    w, h = (int(v) for v in film.crop_size())
+    return _gain(rfilter, w, h)
 
 
 class FilmAccumulator:
@@ -26,6 +77,12 @@ class FilmAccumulator:
         self.weight_index = 4 if self.has_alpha else 3
         self.aov_start = self.weight_index + 1
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
+        self.gain = splat_gain(film)
+
+    def light_image(self, channels):
+        """The light image's first ``channels`` channels, edge pixels by ``splat_gain``."""
+        lt = self.lt.tensor()[:, :, 0:channels]
+        return lt if self.gain is None else lt * self.gain
 
     @staticmethod
     def splat_scale(spp: int):
@@ -64,11 +121,10 @@ class FilmAccumulator:
         """Sum of the normalised camera image and the light image, handed to the film so that
         ``film.bitmap()`` and ``mi.render`` both see it. Returns the developed tensor."""
         cam = self.cam.tensor()
-        lt = self.lt.tensor()
         wi = self.weight_index
         w = cam[:, :, wi:wi + 1]
         inv_w = dr.select(w > 0, 1.0 / dr.select(w > 0, w, 1.0), 0.0)
-        rgb = cam[:, :, 0:3] * inv_w + lt[:, :, 0:3] * light_scale
+        rgb = cam[:, :, 0:3] * inv_w + self.light_image(3) * light_scale
         parts = [rgb]
         if self.has_alpha:
             parts.append(cam[:, :, 3:4] * inv_w)
@@ -90,12 +146,11 @@ class FilmAccumulator:
         a box filter exactly (every sample weighs 1 in its pixel), with another filter up to the
         spread of the passes' weight sums."""
         cam = self.cam.tensor()
-        lt = self.lt.tensor()
         wi = self.weight_index
         w = dr.detach(cam[:, :, wi:wi + 1])
         inv_w = dr.select(w > 0, camera_share / dr.select(w > 0, w, 1.0), 0.0)
         n = 1 if mi.is_monochromatic else 3          # film.develop's colour channels (mono: luminance)
-        parts = [cam[:, :, 0:n] * inv_w + lt[:, :, 0:n]]
+        parts = [cam[:, :, 0:n] * inv_w + self.light_image(n)]
         if self.has_alpha:
             parts.append(dr.detach(cam[:, :, 3:4]) * inv_w)
         if self.n_aov:

@@ -104,3 +104,41 @@ def test_ray_statistics_are_exact_where_they_can_be():
     r = integ.last_render_info['rays']
     assert r['camera_rays'] == 0 and r['light_rays'] == 8 * 8 * 2       # one emission ray each
     assert 0 < r['shadow_rays_blocked'] < r['shadow_rays']
+
+
+def uniform_view(rfilter, width=16, height=12):
+    """A camera facing an emitter of radiance 1 that fills its whole view (and 2 pixels more on
+    each side, no more: light subpaths start on it): every pixel is 1."""
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        'type': 'scene',
+        'sensor': {'type': 'perspective', 'fov': 40,
+                   'film': {'type': 'hdrfilm', 'width': width, 'height': height,
+                            'rfilter': {'type': rfilter}},
+                   'to_world': T().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0])},
+        'light': {'type': 'rectangle',
+                  'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': [1.0, 1.0, 1.0]}},
+                  'to_world': T().translate([0, 0, 1]).rotate([0, 1, 0], 180).scale([0.47, 0.37, 1])}})
+
+
+@pytest.mark.parametrize('rfilter,technique', [('gaussian', 'lt'), ('gaussian', 'bdpt'), ('tent', 'lt'),
+                                               ('lanczos', 'lt')])
+def test_edge_pixels_with_a_wide_filter(rfilter, technique):
+    """Splats come only from inside the film, so with a filter wider than a pixel the light
+    image's edge pixels lack the filter's mass beyond the edge (Mitsuba's ptracer renders them
+    0.84 with the Gaussian filter): film.splat_gain makes them path's pixels, which average the
+    samples inside. The outer two rings of pixels and the rest, each against the exact 1."""
+    b = render_batches(uniform_view(rfilter), {'type': 'bdpt', 'technique': technique, 'max_depth': 1}, 256, 8)
+    edge = np.ones(b.shape[1:3], bool)
+    edge[2:-2, 2:-2] = False
+    for what, mask in (('edge', edge), ('inside', ~edge)):
+        per_batch = b[:, mask, :].mean(axis=(1, 2))
+        m, se = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))
+        assert abs(m - 1.0) < 4 * se + 1e-4, f'{what} pixels: {m:.5f} +- {se:.2g}, exactly 1 expected'
+
+
+def test_splat_coverage_of_the_tent_filter():
+    """A tent of radius 1 centred on an end pixel has 1/8 of its mass beyond the end."""
+    from bdpt_jit.film import splat_coverage
+    cov = splat_coverage(mi.load_dict({'type': 'tent'}), 6)
+    assert np.allclose(cov, [0.875, 1, 1, 1, 1, 0.875], atol=1e-5), cov
