@@ -309,7 +309,9 @@ def normal_map_texture(n=32, seed=3):
 
 def normal_map_file():
     """``normal_map_texture`` written once to an EXR in the temporary directory (a file name
-    keeps scene dicts reusable: a tensor in a dict is consumed by the first load)."""
+    keeps scene dicts reusable: a tensor in a dict is consumed by the first load), removed when
+    the process exits."""
+    import atexit
     import os
     import tempfile
     path = os.path.join(tempfile.gettempdir(), f'bdpt_stability_normalmap_{os.getpid()}.exr')
@@ -317,6 +319,7 @@ def normal_map_file():
         tmp = path + '.tmp.exr'
         mi.Bitmap(normal_map_texture()).write(tmp)
         os.replace(tmp, path)
+        atexit.register(lambda: os.path.exists(path) and os.remove(path))
     return path
 
 
