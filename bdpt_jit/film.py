@@ -62,7 +62,8 @@ def splat_gain(film: mi.Film):
 
 class FilmAccumulator:
     """Channels of both blocks, in Mitsuba's order: colour (3), alpha if the film has it, the
-    filter weight, then the AOVs (parameter ``aovs``: camera samples only)."""
+    filter weight, then the AOVs (parameter ``aovs``: camera samples only). A film with
+    Mitsuba's ``Special`` flag (``specfilm``) has its own: one channel a band, then the weight."""
 
     def __init__(self, film: mi.Film, aov_names=()):
         self.film = film
@@ -73,8 +74,12 @@ class FilmAccumulator:
         self.lt.set_coalesce(False)
         self.n_channels = self.cam.channel_count()
         self.n_aov = len(self.aov_names)
-        self.has_alpha = self.n_channels - self.n_aov == 5
-        self.weight_index = 4 if self.has_alpha else 3
+        # a film of its own layout (specfilm: one channel a spectral band, then the weight) converts
+        # each sample with prepare_sample, as Mitsuba's integrators do; no alpha, no AOVs (spectral)
+        self.special = bool(film.flags() & mi.FilmFlags.Special)
+        self.has_alpha = not self.special and self.n_channels - self.n_aov == 5
+        self.n_colour = self.n_channels - self.n_aov - 1 - int(self.has_alpha) if self.special else 3
+        self.weight_index = self.n_colour + int(self.has_alpha)
         self.aov_start = self.weight_index + 1
         self.crop_offset = mi.ScalarPoint2f(film.crop_offset())
         self.gain = splat_gain(film)
@@ -94,6 +99,10 @@ class FilmAccumulator:
         """A camera sample (weight 1 in the filter's normalisation). ``value``: a spectrum at
         ``wavelengths`` (spectral variants: converted by the block, as Mitsuba's path does);
         ``aov_values``: one Float per AOV channel (RGB and monochrome variants)."""
+        if self.special:
+            self.cam.put(pos, self.film.prepare_sample(value, wavelengths, self.n_channels, 1.0, alpha, active),
+                         active)
+            return
         if not self.n_aov:
             self.cam.put(pos, wavelengths, value, alpha, 1.0, active)
             return
@@ -102,6 +111,10 @@ class FilmAccumulator:
     def put_splat(self, uv_in_crop, value, active, wavelengths):
         """A light-image splat: no alpha, no weight (normalised with the film, as ptracer)."""
         pos = uv_in_crop + self.crop_offset
+        if self.special:
+            self.lt.put(pos, self.film.prepare_sample(value, wavelengths, self.n_channels, 0.0, 0.0, active),
+                        active)
+            return
         if not self.n_aov:
             self.lt.put(pos, wavelengths, value, 0.0, 0.0, active)
             return
@@ -124,7 +137,8 @@ class FilmAccumulator:
         wi = self.weight_index
         w = cam[:, :, wi:wi + 1]
         inv_w = dr.select(w > 0, 1.0 / dr.select(w > 0, w, 1.0), 0.0)
-        rgb = cam[:, :, 0:3] * inv_w + self.light_image(3) * light_scale
+        nc = self.n_colour
+        rgb = cam[:, :, 0:nc] * inv_w + self.light_image(nc) * light_scale
         parts = [rgb]
         if self.has_alpha:
             parts.append(cam[:, :, 3:4] * inv_w)
@@ -149,7 +163,7 @@ class FilmAccumulator:
         wi = self.weight_index
         w = dr.detach(cam[:, :, wi:wi + 1])
         inv_w = dr.select(w > 0, camera_share / dr.select(w > 0, w, 1.0), 0.0)
-        n = 1 if mi.is_monochromatic else 3          # film.develop's colour channels (mono: luminance)
+        n = self.n_colour if self.special else 1 if mi.is_monochromatic else 3   # film.develop's colour channels
         parts = [cam[:, :, 0:n] * inv_w + self.light_image(n)]
         if self.has_alpha:
             parts.append(dr.detach(cam[:, :, 3:4]) * inv_w)

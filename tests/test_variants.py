@@ -5,7 +5,8 @@ with fixed seeds and saves them; the statistical tests run here.
 - mono and spectral Cornell boxes (a textured area light in spectral; in mono also one lit by two
   sphere lights only, whose radiance emitter sampling reads from a table) agree per pixel with
   Mitsuba's `path`, for bdpt, pt and lt, power and uniform weights, and vcm (in spectral
-  variants the samples of a merging iteration share their wavelengths);
+  variants the samples of a merging iteration share their wavelengths); in spectral also with a
+  `specfilm` of two bands, whose samples the film converts (prepare_sample);
 - a narrow-band test that fails if a sample's light and camera subpaths carried different
   wavelengths: the light emits only at 440-460 nm, the walls reflect only at 640-660 nm, so
   every path with a bounce carries exactly zero; independent wavelengths would pair light of
@@ -68,8 +69,19 @@ def spheres(res=16):
     return d
 
 
+def specfilm(res=16):
+    """A spectral film of two overlapping bands (its own channel layout: film.FilmAccumulator)
+    with Mitsuba's default Gaussian filter (film.splat_gain at its edges)."""
+    d = sc.cornell(res)
+    d['sensor'] = dict(d['sensor'])
+    d['sensor']['film'] = {'type': 'specfilm', 'width': res, 'height': res, 'rfilter': {'type': 'gaussian'},
+                           'blue': {'type': 'spectrum', 'value': [(400.0, 1.0), (500.0, 1.0)]},
+                           'long': {'type': 'spectrum', 'value': [(480.0, 0.5), (700.0, 1.0)]}}
+    return d
+
+
 scene = mi.load_dict({'box': box, 'textured': lambda: box(textured=True), 'narrow': narrow_band,
-                      'spheres': spheres}[case]())
+                      'spheres': spheres, 'specfilm': specfilm}[case]())
 imgs = [np.array(mi.render(scene, integrator=mi.load_dict(integ), spp=spp, seed=seed0 + b), dtype=np.float64)
         for b in range(batches)]
 np.save(out, np.stack(imgs))
@@ -97,6 +109,8 @@ CASES = [
     ('llvm_ad_spectral', 'textured', 'pt', 'power'),
     ('llvm_ad_spectral', 'textured', 'lt', 'power'),
     ('llvm_ad_spectral', 'textured', 'vcm', 'power'),
+    ('llvm_ad_spectral', 'specfilm', 'bdpt', 'power'),
+    ('llvm_ad_spectral', 'specfilm', 'lt', 'power'),
 ]
 
 
