@@ -209,6 +209,20 @@ SCENE_HEAD = '''<scene version="3.0.0">
 '''
 
 
+SPECFILM_SCENE = '''<scene version="3.0.0">
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="specfilm">
+            <integer name="width" value="8"/><integer name="height" value="8"/>
+            <spectrum name="blue" value="400:1, 500:1"/><spectrum name="long" value="480:0.5, 700:1"/>
+        </film>
+    </sensor>
+    <shape type="rectangle"><transform name="to_world"><scale value="2"/></transform></shape>
+    <emitter type="point"><point name="position" x="0.5" y="0.5" z="2"/><spectrum name="intensity" value="5"/></emitter>
+</scene>
+'''
+
+
 def _unsupported_emitter_scene():
     """A scene with an emitter bdpt refuses (the supported set grows, so pick one it lacks)."""
     from bdpt_jit.scene_check import SUPPORTED_EMITTERS
@@ -237,6 +251,8 @@ ERROR_CASES = {
     'strategies with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--strategies'], '--strategies'),
     'bdpt option with path': (None, [CORNELL, '-D', 'res=8', '--integrator', 'path', '--mis', 'balance'], '--mis'),
     'unknown variant': (None, [CORNELL, '-D', 'res=8', '--variant', 'nosuch_rgb'], 'nosuch_rgb'),
+    'denoise with a spectral film': (SPECFILM_SCENE, ['--variant', 'llvm_ad_spectral', '--denoise'],
+                                     r'--denoise needs an RGB or luminance film.*SpecFilm'),
     # a medium bdpt cannot see (on a shape inside an instanced shape group): refused naming it
     'medium inside an instance': (SCENE_HEAD + '    <emitter type="constant"/>\n'
                                   '    <medium type="homogeneous" id="fog"/>\n'
@@ -410,6 +426,20 @@ def test_other_variants_write_their_channels(tmp_path, variant, channels):
     ch = {name: c.pixels for name, c in f.channels().items()}
     assert sorted(ch) == channels
     assert all(np.isfinite(ch[k]).all() and ch[k].max() > 0 for k in channels)
+    assert (tmp_path / 'v.png').exists()
+
+
+def test_a_spectral_film_writes_its_bands(tmp_path):
+    """A specfilm's image is one channel a band, named as the scene names them (as Mitsuba
+    writes it); the PNG shows their mean in gray."""
+    (tmp_path / 'scene.xml').write_text(SPECFILM_SCENE)
+    out = tmp_path / 'v.exr'
+    r = run_cli(str(tmp_path / 'scene.xml'), '-o', str(out), '--spp', '4', '--variant', 'llvm_ad_spectral', '-q')
+    assert r.returncode == 0, r.stderr
+    f = OpenEXR.File(str(out), separate_channels=True)
+    ch = {name: c.pixels for name, c in f.channels().items()}
+    assert sorted(ch) == ['blue', 'long']
+    assert all(np.isfinite(ch[k]).all() and ch[k].max() > 0 for k in ch)
     assert (tmp_path / 'v.png').exists()
 
 

@@ -52,15 +52,26 @@ def atomic_write(path, write_fn):
         raise
 
 
-def exr_channels(rgb, layers=None, aov_names=()):
+def film_channel_names(film):
+    """The names of the film's own channels where it has a layout of its own (``specfilm``: its
+    bands' names, as Mitsuba writes them); None for RGB and luminance films."""
+    import mitsuba as mi
+    if not film.flags() & mi.FilmFlags.Special:
+        return None
+    b = film.bitmap()
+    return [b.struct_()[i].name for i in range(b.channel_count())]
+
+
+def exr_channels(rgb, layers=None, aov_names=(), colour_names=None):
     """Channel dict for OpenEXR: the image as R, G, B (Y for a monochrome variant's one
-    channel), then its AOV channels under their names (``dd.T``, ...); each strategy layer as
-    ``<name>.weighted.R/G/B`` and ``<name>.unweighted.R/G/B``."""
+    channel; ``colour_names`` for a film of its own channels), then its AOV channels under their
+    names (``dd.T``, ...); each strategy layer as ``<name>.weighted.R/G/B`` and
+    ``<name>.unweighted.R/G/B``."""
     import numpy as np
     ch = {}
     rgb = np.asarray(rgb, dtype=np.float32)
     n_colour = rgb.shape[2] - len(aov_names)
-    names = ['Y'] if n_colour == 1 else ['R', 'G', 'B']
+    names = colour_names or (['Y'] if n_colour == 1 else ['R', 'G', 'B'])
     for c, cname in enumerate(list(names) + list(aov_names)):
         ch[cname] = np.ascontiguousarray(rgb[:, :, c])
     for name, kinds in (layers or {}).items():
@@ -71,22 +82,26 @@ def exr_channels(rgb, layers=None, aov_names=()):
     return ch
 
 
-def write_exr(path, rgb, header_extra, layers=None, aov_names=(), extra_channels=None):
+def write_exr(path, rgb, header_extra, layers=None, aov_names=(), extra_channels=None, colour_names=None):
     """ZIP-compressed scanline EXR; ``header_extra`` values are written as strings;
     ``extra_channels``: more named channels (--denoise: ``denoised.R``, ``albedo.R``, ...)."""
     import OpenEXR
     header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
     header.update({k: str(v) for k, v in header_extra.items()})
-    channels = exr_channels(rgb, layers, aov_names)
+    channels = exr_channels(rgb, layers, aov_names, colour_names)
     channels.update(extra_channels or {})
     atomic_write(path, lambda tmp: OpenEXR.File(header, channels).write(tmp))
 
 
 def write_png(path, rgb):
-    """Tone mapping: clamp to [0, 1], sRGB transfer curve, 8 bits."""
+    """Tone mapping: clamp to [0, 1], sRGB transfer curve, 8 bits (a film of other than one or
+    three channels, a specfilm's bands: their mean, in gray)."""
     import numpy as np
     import mitsuba as mi
-    a = np.ascontiguousarray(np.nan_to_num(np.asarray(rgb, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0))
+    a = np.nan_to_num(np.asarray(rgb, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    if a.shape[2] not in (1, 3):
+        a = a.mean(axis=2, keepdims=True)
+    a = np.ascontiguousarray(a)
     fmt = mi.Bitmap.PixelFormat.Y if a.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
     png = mi.Bitmap(a, fmt).convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
     atomic_write(path, lambda tmp: png.write(tmp))

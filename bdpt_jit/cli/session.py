@@ -9,7 +9,7 @@ import time
 
 from .args import DEFAULT_VARIANT, GPU_VARIANT, check_params, given_params, option_of, parse_defines
 from .errors import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, PROG, CLIError, error_text, scene_error
-from .outputs import output_paths, write_exr, write_png
+from .outputs import film_channel_names, output_paths, write_exr, write_png
 from .rendering import render
 from .summary import header, print_summary, statistics
 
@@ -43,6 +43,9 @@ def cmd_render(args, guard):
     scene = load_scene(mi, args.scene, defines, args.integrator)
     if not scene.sensors():
         raise CLIError(f"the scene has no sensor: {args.scene}")
+    if den is not None and scene.sensors()[0].film().flags() & mi.FilmFlags.Special:
+        raise CLIError(f"--denoise needs an RGB or luminance film; the scene's film "
+                       f"({scene.sensors()[0].film().class_name()}) has channels of its own: {args.scene}")
     integ, settings = make_integrator(args, scene)
     is_bdpt = isinstance(integ, bdpt_jit.BDPTIntegrator)
     if is_bdpt:
@@ -60,7 +63,7 @@ def cmd_render(args, guard):
     extra, png_img = den.run(scene, colour, res.spp, args.seed) if den is not None else ({}, colour)
     stats = statistics(args, res, settings, variant, args.scene, defines, time.perf_counter() - t_wall)
     stats.update(den.stats if den is not None else {})
-    write_exr(out, img, header(stats), layers, aov_names, extra)
+    write_exr(out, img, header(stats), layers, aov_names, extra, film_channel_names(scene.sensors()[0].film()))
     write_png(png, png_img)
     if not args.quiet:
         print_summary(stats, res, out, png)
