@@ -361,6 +361,12 @@ class CameraTracer:
         _, _, (L, _, _) = transport.walk(self.ctx, self.mis, ps.sampler, self, si, ray, sub, (L, prev, prev_delta))
         ps.film.put_camera(film_pos, L, alpha, mi.Bool(True), wavelengths, aov_values)
 
+    def trace_first_hits(self):
+        """Technique lt's camera samples: no radiance (its light image holds it all), only the
+        film's alpha and AOVs at each sample's first hit, as ``path`` writes them."""
+        film_pos, ray, _, _, alpha, aov_values, _ = self.first_hit()
+        self.ps.film.put_camera(film_pos, mi.Spectrum(0.0), alpha, mi.Bool(True), ray.wavelengths, aov_values)
+
     def go_on(self, sub, carry):
         return sub.active
 

@@ -329,6 +329,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             self.last_merge_radius = ps.schedule.r_last
         if ctx.strategies.camera_pass and ps.n > 0:    # (auto's lattice pilot: a pass may hold no kept pixel)
             CameraTracer(ctx, ps).trace()
+        elif (acc.has_alpha or acc.n_aov) and ps.n > 0:
+            CameraTracer(ctx, ps).trace_first_hits()
         dr.eval(acc.cam.tensor(), acc.lt.tensor())
         if ctx.layers is not None:
             dr.eval(ctx.layers.buf)

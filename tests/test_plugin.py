@@ -173,6 +173,23 @@ def test_aovs_are_mitsubas_and_leave_the_image_unchanged():
     assert np.all(whole < 0.01), dict(zip(names, whole))
 
 
+def test_light_tracing_writes_alpha_and_aovs_from_its_camera_rays():
+    """Technique lt traces no camera subpath, but a film with alpha or AOVs gets them from one
+    first hit a sample, as path's (before: zero everywhere). With the same seed, bdpt's camera
+    rays are the same rays: the same channels exactly; lt's colour is lt's without them."""
+    import numpy as np
+    d = mi.cornell_box()
+    d['sensor']['film'].update(width=16, height=16, rfilter={'type': 'box'}, pixel_format='rgba')
+    scene = mi.load_dict(d)
+    def render(technique, aovs):
+        return np.array(mi.render(scene, integrator=mi.load_dict(
+            {'type': 'bdpt', 'max_depth': 3, 'technique': technique, 'aovs': aovs}), spp=16, seed=3))
+    lt, bd, plain = render('lt', 'dd:depth'), render('bdpt', 'dd:depth'), render('lt', '')
+    assert lt.shape == (16, 16, 5) and 0 < lt[..., 3].mean() < 1    # the box's opening: alpha 0
+    np.testing.assert_array_equal(lt[..., 3:], bd[..., 3:])
+    np.testing.assert_allclose(lt[..., :3], plain[..., :3], rtol=1e-4, atol=1e-5)
+
+
 @pytest.mark.parametrize('value', ['dd', 'dd:depths', ':depth', 'dd:depth,xx'])
 def test_bad_aovs_name_the_parameter_and_the_types(value):
     with pytest.raises(Exception) as e:
