@@ -120,7 +120,8 @@ class Context:
         self.exact_adjoint = scene_perturbs_normals(scene)
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
-        self.beams = (self.media is not None and self.strategies.trace_merge and self.media.info.gray
+        self.beams = (self.media is not None and self.media.info.any and self.strategies.trace_merge
+                      and self.media.info.gray
                       and settings.get('media_merging', 'beams') == 'beams')
         self._record = None     # the stored light vertices' type: built when a store asks (record)
         # the table's reflectances are constants: derivatives go through Mitsuba's BSDFs
@@ -173,8 +174,16 @@ class Context:
         with participating media; (None, None, None) without: no medium code is traced. Refuses
         what is not built with media yet, naming the parameter and the medium."""
         info = media_info(scene, sensor)
-        if not info.any:
+        if not info.any and not (info.any_null and not self.ad):
             return None, None, None
+        # a surface with a Null lobe and no medium: the tracer passes it on walks and edges with
+        # its Null lobe's probability and transmission (media.MediumTracer), so that a shadow ray
+        # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
+        # behind a mask lit nothing); vacuum everywhere, so no distance is sampled
+        if not info.any:
+            from .media import MediumTracer
+            from .media_path import EmitterMedia
+            return MediumTracer(scene, self.offsets, info, None), EmitterMedia(scene, self.offsets), None
         from .media import MediumTracer
         from .media_path import EmitterMedia
         first = describe_medium(scene_media(scene, sensor)[0])

@@ -427,7 +427,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         }
         if ctx.stats is not None:
             info['rays'] = ctx.stats.summary()
-        if ctx.media is not None:
+        if ctx.media is not None and not ctx.media.info.any:
+            info['null_lobes'] = 'passed on walks and edges (media.MediumTracer; the scene has no medium)'
+        elif ctx.media is not None:
             info['media'] = {'heterogeneous': ctx.media.info.heterogeneous, 'chromatic': ctx.media.info.chromatic,
                              'merging': None if not ctx.strategies.trace_merge else ('beams' if ctx.beams else 'points'),
                              **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}

@@ -363,12 +363,18 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
                      chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media),
                      gray=all(_gray(m) for m in media),
                      partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()),
+                     any_null=any(_any_null(s.bsdf()) for s in scene.shapes()),
                      varying_albedo=any(m.is_homogeneous() and _varying_albedo(m) for m in media))
 
 
 def _varying_albedo(medium) -> bool:
     """A medium whose albedo is a volume other than a constant (a ``gridvolume``)."""
     return any(k.startswith('albedo.') and not k.startswith('albedo.value') for k in mi.traverse(medium).keys())
+
+
+def _any_null(bsdf) -> bool:
+    """A BSDF with a Null lobe (``null``, ``mask``, ``thindielectric``, ...)."""
+    return bsdf is not None and bool(int(bsdf.flags()) & int(mi.BSDFFlags.Null))
 
 
 def _partial_null(bsdf) -> bool:

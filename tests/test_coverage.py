@@ -291,6 +291,53 @@ def test_textured_emitter_refused_on_meshes_and_cylinders(shape):
         check_scene(scene, scene.sensors()[0])
 
 
+# ---------------------------------------------------------------------------- null lobes
+def leaf_over_floor(opacity, light='point', material=0.0):
+    """A floor lit by a light above a leaf: a rectangle whose BSDF is a ``mask`` of ``opacity``
+    over a two-sided diffuse of reflectance ``material`` (None: no leaf; 'null': a null BSDF).
+    The camera sees the floor, not the leaf."""
+    d = {'type': 'scene',
+         'sensor': {'type': 'perspective', 'fov': 20, 'film': film(RES),
+                    'to_world': T().look_at(origin=[3, 0.3, 0], target=[0, 0, 0], up=[0, 1, 0])},
+         'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(0.6), 'bsdf': diffuse(0.5)}}
+    if light == 'point':
+        d['light'] = {'type': 'point', 'position': [0, 2, 0], 'intensity': 5.0}
+    else:
+        d['light'] = {'type': 'rectangle', 'to_world': T().translate([0, 2, 0]).rotate([1, 0, 0], 90).scale(0.2),
+                      'emitter': {'type': 'area', 'radiance': 30.0}}
+    if opacity is not None:
+        bsdf = {'type': 'null'} if opacity == 'null' else {
+            'type': 'mask', 'opacity': opacity, 'material': {'type': 'twosided', 'bsdf': diffuse(material)}}
+        d['leaf'] = {'type': 'rectangle', 'to_world': T().translate([0, 1, 0]).rotate([1, 0, 0], -90).scale(2.5),
+                     'bsdf': bsdf}
+    return d
+
+
+@pytest.mark.parametrize('technique', ['pt', 'bdpt'])
+@pytest.mark.parametrize('light', ['point', 'area'])
+def test_shadow_rays_pass_null_lobes(technique, light):
+    """A black leaf of opacity 0.4 passes 0.6 of the light to every floor point, and a null
+    sheet all of it: each floor pixel is 0.6 times (1 times) the same renderer's without the
+    leaf. Mitsuba's path blocks shadow rays at such surfaces: under a point light it renders the
+    floor black, and bdpt's pt did (media.MediumTracer now passes them, context.media_setup)."""
+    integ = {'type': 'bdpt', 'max_depth': -1, 'technique': technique}
+    spp = 64 if technique == 'pt' else 16
+    free = render_batches(mi.load_dict(leaf_over_floor(None, light)), integ, spp, BATCHES, seed0=7)
+    for opacity, share in ((0.4, 0.6), ('null', 1.0)):
+        mine = render_batches(mi.load_dict(leaf_over_floor(opacity, light)), integ, spp, BATCHES)
+        ok, msg = agreement(mine, share * free)
+        assert ok, f'{opacity} over the {light} light, {technique}: {msg}'
+
+
+def test_a_leaf_s_checkered_opacity_against_volpath():
+    """The leaf fully opaque in one square of two (a checkerboard opacity, as foliage's alpha
+    maps), reflecting 0.3: against Mitsuba's volpath, which passes its shadow rays through
+    null lobes (its path does not)."""
+    checker = {'type': 'checkerboard', 'color0': 0.0, 'color1': 1.0, 'to_uv': mi.ScalarTransform3f().scale([8, 8])}
+    check('leaf-checker', lambda: leaf_over_floor(checker, 'point', 0.3), {'type': 'volpath', 'max_depth': -1}, 1024,
+          {'type': 'bdpt', 'max_depth': -1, 'technique': 'pt'}, 64)
+
+
 # ---------------------------------------------------------------------------- sunsky
 @pytest.mark.parametrize('sun,technique,mis,spp', [
     (True, 'bdpt', 'power', 256),

@@ -11,13 +11,16 @@
   test_mis_partition checks the weights themselves on random paths.
 - ``vcm`` against ``bdpt`` (per pixel and per 4x4 block, helpers.agreement) on a diffuse Cornell
   box, where no path needs merging, at a small radius.
-- A caustic seen through glass: the same plane under a thin dielectric sheet, the point light
-  above the sheet, the camera looking through it. Every path of 4 edges is light - sheet -
-  plane - sheet - camera, which no connection and no emitter hit can sample (a point light, a
-  delta vertex next to the diffuse one on both sides): only merging renders it, and its
-  expected image is again the blurred irradiance (now times the sheet's transmittance, taken
-  from Mitsuba's thindielectric), for vcm and vm, so the bias falls with the passes as the
-  radius schedule predicts.
+- A caustic seen through glass: the same plane under a sheet of delta transmission (a
+  ``dielectric`` of matched index: it refracts straight on, reflects nothing, transmits all),
+  the point light above the sheet, the camera looking through it. Every path of 4 edges is
+  light - sheet - plane - sheet - camera, which no connection and no emitter hit can sample (a
+  point light, a delta vertex next to the diffuse one on both sides): only merging renders it,
+  and its expected image is again the blurred irradiance, for vcm and vm, so the bias falls with
+  the passes as the radius schedule predicts.
+- The same plane under a ``thindielectric`` sheet, whose transmission is a Null lobe: shadow
+  rays and connections pass it with its transmittance (taken from Mitsuba's thindielectric),
+  so bdpt and pt render the sharp irradiance through it.
 """
 
 import drjit as dr
@@ -38,12 +41,18 @@ RES = 32
 SHEET = 0.5         # height of the thin dielectric sheet (between the plane and the light)
 
 
-def plane_scene(sheet=False):
+SHEETS = {'matched': {'type': 'dielectric', 'int_ior': 1.0, 'ext_ior': 1.0},    # delta transmission, all of it
+          'thin': {'type': 'thindielectric'}}                                   # a Null lobe beside a delta reflection
+
+
+def plane_scene(sheet=None):
+    """The plane under the point light, seen from above; ``sheet`` ('matched', 'thin') a sheet of
+    that BSDF between them (SHEETS)."""
     T = mi.ScalarTransform4f
     extra = {}
     if sheet:
         extra['sheet'] = {'type': 'rectangle', 'to_world': T().translate([0, 0, SHEET]).scale([PLANE, PLANE, 1.0]),
-                          'bsdf': {'type': 'thindielectric'}}
+                          'bsdf': SHEETS[sheet]}
     return mi.load_dict({
         'type': 'scene', **extra,
         'plane': {'type': 'rectangle', 'to_world': T().scale([PLANE, PLANE, 1.0]),
@@ -229,16 +238,15 @@ def test_closed_sphere(technique, mis, radius):
 
 @pytest.mark.parametrize('technique', ['vcm', pytest.param('vm', marks=pytest.mark.slow)])
 def test_caustic_through_glass_matches_the_blurred_irradiance(technique):
-    """The plane seen through a thin dielectric sheet, lit by the point light through it, at
-    max_depth 4 (light - sheet - plane - sheet - camera; bdpt renders black here). vcm and vm,
+    """The plane seen through a sheet of delta transmission, lit by the point light through it,
+    at max_depth 4 (light - sheet - plane - sheet - camera; bdpt renders black here). vcm and vm,
     radius_alpha 0.5 (a fast schedule, so that the fall is measurable in a short test): the
     image mean after 16 and after 64 passes each within 4 standard errors of the blurred
     analytic value for that many passes (the bias falls as the schedule predicts: the two
     expected values differ by more than 6 standard errors)."""
-    scene = plane_scene(sheet=True)
+    scene = plane_scene(sheet='matched')
     r1, K = 0.8, 8
     rel = r1 / scene_radius(scene)
-    t_cam = float(sheet_transmittance(np.array([1.0]))[0])       # the camera looks straight down
     got, want, se = {}, {}, {}
     for spp in (16, 64):
         means = []
@@ -253,12 +261,30 @@ def test_caustic_through_glass_matches_the_blurred_irradiance(technique):
             means.append(float(np.mean(img)))
         got[spp], se[spp] = np.mean(means), np.std(means, ddof=1) / np.sqrt(K)
         radii = [r1 * i ** -0.25 for i in range(1, spp + 1)]
-        want[spp] = t_cam * expected_mean(radii, through_sheet)
+        want[spp] = expected_mean(radii)
         msg = f'{technique}, {spp} passes: {got[spp]:.5f} +- {se[spp]:.5f}, expected {want[spp]:.5f}'
         assert abs(got[spp] - want[spp]) < 4 * se[spp], msg
     assert abs(want[64] - want[16]) > 6 * max(se.values()), f'the test cannot tell: {want}, {se}'
     bdpt = mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 4}), spp=4)
     assert float(np.max(np.array(bdpt))) == 0.0      # no connection samples these paths
+
+
+@pytest.mark.parametrize('technique', ['pt', 'bdpt'])
+def test_a_thin_sheet_passes_shadow_rays(technique):
+    """The plane seen through a thindielectric sheet, lit by the point light through it: the
+    sheet's transmission is a Null lobe, which shadow rays and connections pass with its
+    transmittance, so pt and bdpt render the sharp irradiance times the sheet's transmittance
+    on the light's side and on the camera's (before, as in Mitsuba's path, they rendered
+    black). max_depth 2: passing a Null lobe is no bounce (as volpath counts), and the paths
+    the sheet reflects back to the plane have 3 edges or more. The image mean within 4 standard
+    errors of the quadrature."""
+    scene = plane_scene(sheet='thin')
+    t_cam = float(sheet_transmittance(np.array([1.0]))[0])       # the camera looks straight down
+    b = render_batches(scene, {'type': 'bdpt', 'max_depth': 2, 'technique': technique}, 16, 8)
+    per_batch = b.mean(axis=(1, 2, 3))
+    got, se = per_batch.mean(), per_batch.std(ddof=1) / np.sqrt(len(per_batch))
+    want = t_cam * expected_mean([0.0], through_sheet)
+    assert abs(got - want) < 4 * se + 1e-5 * want, f'{technique}: {got:.5f} +- {se:.5f}, expected {want:.5f}'
 
 
 @pytest.mark.slow
