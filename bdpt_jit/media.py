@@ -324,6 +324,9 @@ class MediumTracer:
     def _segment_tr(self, ray, length, medium, sampler, active, tracking=True):
         """(T estimate, exact homogeneous T, T_maj) of ``medium`` along ``ray`` over [0, length]
         (``tracking`` False: the densities only, T_maj for the estimate in heterogeneous parts)."""
+        if not self.info.any:           # vacuum everywhere (null lobes only): nothing to attenuate
+            one = dr.full(mi.Spectrum, 1.0, dr.width(ray.o))
+            return one, one, mi.Float(1.0)
         hom, het = self._kinds(medium, active)
         sigma_t = interaction_at(medium, ray, hom).sigma_t
         tr_hom = dr.select(hom, homogeneous_tr(sigma_t, length), 1.0)
@@ -422,6 +425,11 @@ class MediumTracer:
         """One segment of distance sampling in ``medium`` (channel ``c`` in its homogeneous
         lanes): (collided, the collision, the segment's exact homogeneous T up to the end, its
         null weight, its T_maj, the collision's DensityFactor)."""
+        if not self.info.any:           # vacuum everywhere (null lobes only): no collision
+            n = dr.width(ray.o)
+            one = dr.full(mi.Spectrum, 1.0, n)
+            return (dr.zeros(mi.Bool, n), dr.zeros(mi.MediumInteraction3f, n), one, one, mi.Float(1.0),
+                    DensityFactor.surface(n))
         hom, het = self._kinds(medium, active)
         mei = interaction_at(medium, ray, hom)
         sigma_c = channel_of(mei.sigma_t, c)

@@ -158,7 +158,9 @@ def sample_step(ctx, sampler, ray, medium, start, beta, active):
     throughput ``beta`` times the step's weight; the step's forward and reverse distance
     densities, mis.MIS.distance's arguments)."""
     ds = ctx.media.sample_distance(ray, None, medium, sampler, start, active)
-    hit = MediumHit(ds.si, ds.mei, ds.collided & active, ds.medium)
+    # vacuum everywhere (null lobes only): a literal, so that no medium-vertex branch is traced
+    collided = ds.collided & active if ctx.media.info.any else mi.Bool(False)
+    hit = MediumHit(ds.si, ds.mei, collided, ds.medium)
     return hit, mi.Spectrum(dr.select(active, beta * ds.weight, beta)), ds.pdf_fwd, ds.pdf_rev
 
 
