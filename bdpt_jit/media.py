@@ -64,13 +64,15 @@ class MediaInfo:
     ``thindielectric``, ``mask``; walks and edges pass such a surface with its Null lobe's
     probability, MediumTracer), varying_albedo (a homogeneous medium's albedo is a volume),
     any_null (a shape's BSDF has a Null lobe: with no medium, the tracer still walks and
-    connects through such surfaces, context.media_setup). Built by scene_check.media_info."""
+    connects through such surfaces, context.media_setup), exclude_null (every partly null BSDF
+    is thin-glass-like: asked to leave Null out it samples its delta lobes alone, so a walk that
+    stops there samples them so, transport._sample). Built by scene_check.media_info."""
 
     def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False,
-                 varying_albedo=False, any_null=False):
+                 varying_albedo=False, any_null=False, exclude_null=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
         self.gray, self.partial_null, self.varying_albedo = gray, partial_null, varying_albedo
-        self.any_null = any_null
+        self.any_null, self.exclude_null = any_null, exclude_null
 
 
 def has_medium(medium):

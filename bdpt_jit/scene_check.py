@@ -364,12 +364,37 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
                      gray=all(_gray(m) for m in media),
                      partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()),
                      any_null=any(_any_null(s.bsdf()) for s in scene.shapes()),
+                     exclude_null=_null_excludable([s.bsdf() for s in scene.shapes() if _partial_null(s.bsdf())]),
                      varying_albedo=any(m.is_homogeneous() and _varying_albedo(m) for m in media))
 
 
 def _varying_albedo(medium) -> bool:
     """A medium whose albedo is a volume other than a constant (a ``gridvolume``)."""
     return any(k.startswith('albedo.') and not k.startswith('albedo.value') for k in mi.traverse(medium).keys())
+
+
+def _null_excludable(bsdfs) -> bool:
+    """Whether every one of ``bsdfs`` (partly null) samples only delta lobes and never its Null
+    lobe when asked to leave Null out (vertex.context_without_null): ``thindielectric`` does, a
+    ``mask`` does not (it then samples Null alone). Probed with 64 incident directions and
+    lobe samples on both sides; False for an empty list (nothing to exclude)."""
+    from .vertex import IMPORTANCE, RADIANCE, context_without_null
+    if not bsdfs:
+        return False
+    k = np.arange(64)
+    cos = mi.Float(((k % 8 + 0.5) / 8 * np.where(k < 32, 1.0, -1.0)).astype(np.float32))
+    si = dr.zeros(mi.SurfaceInteraction3f, len(k))
+    si.wi = mi.Vector3f(dr.safe_sqrt(1 - cos * cos), 0, cos)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    u1, u2 = mi.Float(((k // 8 % 4 + 0.5) / 4).astype(np.float32)), mi.Point2f(0.3, 0.7)
+    for bsdf in bsdfs:
+        for mode in (RADIANCE, IMPORTANCE):
+            bs, w = bsdf.sample(context_without_null(mode), si, u1, u2)
+            null = np.array(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null))
+            delta = np.array(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+            if null.any() or not (delta | (np.array(dr.max(w)) == 0)).all():
+                return False
+    return True
 
 
 def _any_null(bsdf) -> bool:

@@ -13,7 +13,7 @@ from .jitmath import safe_div
 from .loops import while_once
 from .mis import MISState
 from .roulette import roulette
-from .vertex import RADIANCE, bsdf_context
+from .vertex import RADIANCE, bsdf_context, context_without_null
 
 PENDING_HITS = True     # False: camera walks carry whole interactions (for side-by-side measurements)
 
@@ -97,7 +97,11 @@ def _sample(ctx, mode, sampler, v, active, reverse=True, null_lobe=None):
         bs, bsdf_w, (u1, u2) = v.drawn
     else:
         u1, u2 = sampler.next_1d(), sampler.next_2d()
-        bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, bsdf_context(mode), si, u1, u2, active)
+        # at a stop on a partly null surface whose other lobes are delta (thin glass: media.py),
+        # those lobes alone, so that its reflection is sampled with probability R, not R^2
+        exclude = null_lobe is not None and ctx.media.info.exclude_null
+        bsdf_ctx = context_without_null(mode) if exclude else bsdf_context(mode)
+        bs, bsdf_w = ctx.sampling.sample_bsdf(v.bsdf, bsdf_ctx, si, u1, u2, active)
     wo_world = si.to_world(bs.wo)
     factor = bsdf_w
     if null_lobe is not None:

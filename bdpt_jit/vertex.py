@@ -24,6 +24,16 @@ def bsdf_context(mode):
     return CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
 
 
+NO_NULL = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Null)      # every lobe kind but Null
+
+
+def context_without_null(mode):
+    """The BSDF context of ``mode`` that leaves Null lobes out (media.MediaInfo.exclude_null)."""
+    c = mi.BSDFContext(mi.TransportMode.Radiance if mode == RADIANCE else mi.TransportMode.Importance)
+    c.type_mask = NO_NULL
+    return c
+
+
 class Vertex:
     """One vertex, one field a line (a Dr.Jit struct: it can be stored, selected, carried)."""
     DRJIT_STRUCT = {

@@ -269,6 +269,28 @@ def test_caustic_through_glass_matches_the_blurred_irradiance(technique):
     assert float(np.max(np.array(bdpt))) == 0.0      # no connection samples these paths
 
 
+def test_thin_glass_reflects_with_the_probability_of_its_reflectance():
+    """A thin pane in front of a black wall, under a sky of 1, seen head-on: a pixel is R, the
+    pane's reflectance. A walk that reaches the pane stops with probability R (1 - its Null
+    lobe's transmission) and then samples its reflection alone (media.MediaInfo.exclude_null):
+    one sample is 1 with probability R, else 0, so a pixel of N samples has variance
+    R (1 - R) / N. Sampling the whole BSDF at the stop (Null again with probability 1 - R,
+    ending the lane) reflects with probability R^2 and weight 1 / R: 14 times the variance."""
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        'type': 'scene', 'sky': {'type': 'constant', 'radiance': 1.0},
+        'pane': {'type': 'rectangle', 'bsdf': {'type': 'thindielectric'}},
+        'wall': {'type': 'rectangle', 'to_world': T().translate([0, 0, -1]).scale(3), 'bsdf': {'type': 'diffuse', 'reflectance': 0.0}},
+        'sensor': {'type': 'orthographic', 'to_world': T().look_at(origin=[0, 0, 2], target=[0, 0, 0], up=[0, 1, 0]).scale([0.5, 0.5, 1.0]),
+                   'film': {'type': 'hdrfilm', 'width': 16, 'height': 16, 'rfilter': {'type': 'box'}, 'pixel_format': 'rgb'}}})
+    r = 1.0 - float(sheet_transmittance(np.array([1.0]))[0])
+    spp = 64
+    img = np.array(mi.render(scene, integrator=mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'pt'}),
+                             spp=spp, seed=5))[..., 0].ravel()
+    assert abs(img.mean() - r) < 4 * np.sqrt(r * (1 - r) / spp / img.size), (img.mean(), r)
+    assert 0.7 < img.var(ddof=1) / (r * (1 - r) / spp) < 1.4, (img.var(ddof=1), r * (1 - r) / spp)
+
+
 @pytest.mark.parametrize('technique', ['pt', 'bdpt'])
 def test_a_thin_sheet_passes_shadow_rays(technique):
     """The plane seen through a thindielectric sheet, lit by the point light through it: the
