@@ -364,13 +364,21 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
                      gray=all(_gray(m) for m in media),
                      partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()),
                      any_null=any(_any_null(s.bsdf()) for s in scene.shapes()),
-                     exclude_null=_null_excludable([s.bsdf() for s in scene.shapes() if _partial_null(s.bsdf())]),
+                     exclude_null=_null_excludable(_distinct([s.bsdf() for s in scene.shapes() if _partial_null(s.bsdf())])),
                      varying_albedo=any(m.is_homogeneous() and _varying_albedo(m) for m in media))
 
 
 def _varying_albedo(medium) -> bool:
     """A medium whose albedo is a volume other than a constant (a ``gridvolume``)."""
     return any(k.startswith('albedo.') and not k.startswith('albedo.value') for k in mi.traverse(medium).keys())
+
+
+def _distinct(bsdfs) -> list:
+    """``bsdfs`` with each BSDF once (shapes share them)."""
+    found = {}
+    for b in bsdfs:
+        found.setdefault(int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0]), b)
+    return list(found.values())
 
 
 def _null_excludable(bsdfs) -> bool:
