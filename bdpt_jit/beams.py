@@ -37,6 +37,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .jitmath import safe_div
+from .rays import scene_bbox
 from .media import DensityFactor, MediumVertex, interaction_at
 from .merge import _PRIMES
 from .vertex import RADIANCE
@@ -58,7 +59,7 @@ class BeamGrid:
     def __init__(self, scene, store, schedule):
         self.store, self.schedule = store, schedule
         n_slots = store.n * store.capacity
-        bbox = scene.bbox()
+        bbox = scene_bbox(scene)
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
         slot = self.medium_slots(store, n_slots)       # (a few of the slots: compacted first)
         empty = dr.width(slot) == 0

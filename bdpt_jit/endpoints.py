@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
-from .rays import RayOffsets, no_wavelengths, offset_origin
+from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
 from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_radiance,  # noqa: F401
@@ -109,7 +109,7 @@ class EmitterTable(DirectSampling):
         self.has_textured_area = any('area' in emitter_kinds(e.flags()) and
                                      mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying) for e in emitters)
         # the disk of infinite emitters: covers the scene's bounding sphere
-        bs = scene.bbox().bounding_sphere()
+        bs = scene_bbox(scene).bounding_sphere()
         r = float(bs.radius) if math.isfinite(float(bs.radius)) and float(bs.radius) > 0 else 1.0
         self.center = mi.Point3f(bs.center)
         self.radius = r * 1.01 + 1e-4

@@ -28,6 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .jitmath import safe_div
+from .rays import scene_bbox
 from .vertex import RADIANCE
 
 _PRIMES = (73856093, 19349663, 83492791)    # spatial hash (Teschner et al. 2003)
@@ -36,7 +37,7 @@ BUCKETS = 4             # the hash table's buckets per stored vertex, at least
 
 def scene_radius(scene):
     """Radius of the scene's bounding sphere (1 for an empty scene)."""
-    bbox = scene.bbox()
+    bbox = scene_bbox(scene)
     r = float(dr.norm(bbox.max - bbox.min)) * 0.5 if bbox.valid() else 1.0
     return r if r > 0 else 1.0
 
@@ -91,7 +92,7 @@ class PhotonGrid:
         size = 1               # buckets: BUCKETS times the entries, so that empty cells rarely share one
         while size < max(BUCKETS * n, 1):
             size *= 2
-        bbox = scene.bbox()
+        bbox = scene_bbox(scene)
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
         self.mask = dr.opaque(mi.UInt32, size - 1)
         self.store = store

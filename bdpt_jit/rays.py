@@ -70,13 +70,38 @@ COARSE_REL = 4 * ERR_REL
 COARSE_SHAPES = ('SDFGrid',)
 
 
+def shape_bbox(shape):
+    """The shape's bounding box. Mitsuba 3.9.1 merges shapes that share a BSDF and have no id
+    into one mesh, and where it merges ``rectangle`` shapes the mesh's box is left invalid (and
+    so the scene's, or the scene's lacks them): such a mesh's box is found from its vertices."""
+    bb = shape.bbox()
+    if bb.valid() or not shape.is_mesh() or shape.vertex_count() == 0:
+        return bb
+    v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+    v = v[np.isfinite(v).all(axis=1)]
+    if len(v) == 0:
+        return bb
+    return mi.ScalarBoundingBox3f(mi.ScalarPoint3f(v.min(axis=0)), mi.ScalarPoint3f(v.max(axis=0)))
+
+
+def scene_bbox(scene):
+    """The scene's bounding box from its shapes' (``shape_bbox``), not ``scene.bbox()``, which a
+    merged mesh leaves invalid or too small. Invalid only for a scene without geometry."""
+    out = mi.ScalarBoundingBox3f()
+    for shape in scene.shapes():
+        b = shape_bbox(shape)
+        if b.valid():
+            out.expand(b)
+    return out
+
+
 class RayOffsets:
     """The per-shape magnitudes of a scene and the functions that spawn rays with them."""
 
     def __init__(self, scene: mi.Scene):
         mags, meshes = {}, set()
         for shape in scene.shapes():
-            bb = shape.bbox()
+            bb = shape_bbox(shape)
             m = max(float(np.max(np.abs(np.array(bb.min)))), float(np.max(np.abs(np.array(bb.max)))))
             idx = int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
             mags[idx] = m if np.isfinite(m) else 0.0
