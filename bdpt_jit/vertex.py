@@ -109,7 +109,7 @@ class Vertex:
         """A shadow ray to the emitter sample ``ds`` (rays.spawn_to_emitter)."""
         si = self.si
         return spawn_to_emitter(si.p, si.n, self.err, ds, ctx.emitters.error_at(ds), si.time,
-                                ctx.offsets.far_rel, si.wavelengths)
+                                ctx.offsets.far_rel, si.wavelengths, ctx.emitters.kinds(ds.emitter).infinite)
 
 
 def visibility(ctx, ray, active):
