@@ -176,16 +176,14 @@ class Context:
         info = media_info(scene, sensor)
         if not info.any and not (info.any_null and not self.ad):
             return None, None, None
+        from .media import MediumTracer
+        from .media_path import EmitterMedia
         # a surface with a Null lobe and no medium: the tracer passes it on walks and edges with
         # its Null lobe's probability and transmission (media.MediumTracer), so that a shadow ray
         # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
         # behind a mask lit nothing); vacuum everywhere, so no distance is sampled
         if not info.any:
-            from .media import MediumTracer
-            from .media_path import EmitterMedia
             return MediumTracer(scene, self.offsets, info, None), EmitterMedia(scene, self.offsets), None
-        from .media import MediumTracer
-        from .media_path import EmitterMedia
         first = describe_medium(scene_media(scene, sensor)[0])
         if self.ad:
             raise UnsupportedSceneError(

@@ -45,7 +45,8 @@ _GAINS = {}                     # (variant, filter, width, height) -> splat_gain
 def _gain(rfilter, width, height):
     key = (mi.variant(), str(rfilter), width, height)
     if key not in _GAINS:
-        gain = 1.0 / np.outer(splat_coverage(rfilter, height), splat_coverage(rfilter, width))
+        cov = np.outer(splat_coverage(rfilter, height), splat_coverage(rfilter, width))
+        gain = np.where(cov > 1e-3, 1.0 / np.maximum(cov, 1e-3), 1.0)     # (a pixel's own centre: far above)
         _GAINS[key] = gain.astype(np.float32).reshape(height, width, 1)
     return mi.TensorXf(_GAINS[key])
 

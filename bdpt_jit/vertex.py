@@ -24,14 +24,19 @@ def bsdf_context(mode):
     return CTX_RADIANCE if mode == RADIANCE else CTX_IMPORTANCE
 
 
-NO_NULL = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Null)      # every lobe kind but Null
+def _without_null(transport_mode):
+    c = mi.BSDFContext(transport_mode)
+    c.type_mask = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Null)      # every lobe kind but Null
+    return c
+
+
+CTX_RADIANCE_NO_NULL = _without_null(mi.TransportMode.Radiance)
+CTX_IMPORTANCE_NO_NULL = _without_null(mi.TransportMode.Importance)
 
 
 def context_without_null(mode):
     """The BSDF context of ``mode`` that leaves Null lobes out (media.MediaInfo.exclude_null)."""
-    c = mi.BSDFContext(mi.TransportMode.Radiance if mode == RADIANCE else mi.TransportMode.Importance)
-    c.type_mask = NO_NULL
-    return c
+    return CTX_RADIANCE_NO_NULL if mode == RADIANCE else CTX_IMPORTANCE_NO_NULL
 
 
 class Vertex:
