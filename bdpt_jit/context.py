@@ -20,7 +20,8 @@ from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .sampling import Sampling
 from .scene_check import (UnsupportedSceneError, VertexNeeds, describe_medium, has_instances, media_info,
-                          scene_has_delta_bsdf, scene_media, scene_refracts, scene_perturbs_normals)
+                          scene_has_delta_bsdf, scene_media, scene_refracts, scene_perturbs_normals,
+                          scene_non_reciprocal)
 from .stats import MediumStats, RayStats
 from .store import record_type
 from .strategies import StrategySet
@@ -117,7 +118,9 @@ class Context:
                        camera_chains=bool(ad_geometry) and self.has_delta, merge_everywhere=merge_everywhere)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
-        self.exact_adjoint = scene_perturbs_normals(scene)
+        # light subpaths take the exact adjoint (connect.adjoint_eval) where a BSDF perturbs its
+        # shading frame or is not reciprocal
+        self.exact_adjoint = scene_perturbs_normals(scene) or scene_non_reciprocal(scene)
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
         self.beams = (self.media is not None and self.media.info.any and self.strategies.trace_merge

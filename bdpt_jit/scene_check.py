@@ -242,6 +242,78 @@ def scene_perturbs_normals(scene: mi.Scene) -> bool:
     return False
 
 
+# BSDF classes (as Mitsuba 3.9.1 names and prints them, nested ones included) whose
+# importance-mode value is their radiance-mode value with the directions swapped (the adjoint,
+# Veach's eq. 5.17), checked with _non_reciprocal; and the texture and spectrum names that
+# printing them shows. Anything else is probed.
+RECIPROCAL_CLASSES = {
+    'SmoothDiffuse', 'RoughConductor', 'SmoothConductor', 'SmoothDielectric', 'RoughDielectric',
+    'ThinDielectric', 'SmoothPlastic', 'RoughPlastic', 'TwoSided', 'TwoSidedBRDF', 'BlendBSDF', 'Null',
+    'Mask', 'MaskBSDF', 'NormalMap', 'BumpMap', 'Principled', 'PolarizedPlastic', 'SpecularDiffusePolarized',
+    'LinearPolarizer', 'CircularPolarizer', 'LinearRetarder', 'brdf', 'nested_bsdf',
+    'Checkerboard', 'MeshAttribute', 'Transform', 'ContinuousDistribution', 'IrregularContinuousDistribution',
+}
+
+
+def _known_reciprocal(bsdf) -> bool:
+    """Every class ``bsdf`` prints (nested BSDFs, textures, spectra) is in RECIPROCAL_CLASSES or
+    a texture or spectrum. Mitsuba prints principled BSDFs as 'Principled BSDF :' and
+    principledthin as 'The Thin Principled BSDF :' (not reciprocal: its thin transmission)."""
+    text = str(bsdf)
+    names = set(re.findall(r'([A-Za-z_]\w*)\[', text)) | {str(bsdf.class_name())}
+    names |= set(re.findall(r'([A-Za-z][\w ]*) BSDF :', text))
+    return all(n in RECIPROCAL_CLASSES or n.endswith(('Spectrum', 'Texture')) for n in names)
+
+
+def _probe_pairs(n=48):
+    """Directions on a spiral over the whole sphere and every ordered pair of them not within
+    0.05 of tangent at either end: (wi, wo) as numpy arrays (pairs x 3)."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = k * np.pi * (3 - np.sqrt(5))
+    d = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing='ij')
+    keep = (i != j) & (np.abs(d[i, 2]) > 0.05) & (np.abs(d[j, 2]) > 0.05)
+    return d[i[keep]], d[j[keep]]
+
+
+def _non_reciprocal(bsdf) -> bool:
+    """Whether ``bsdf``'s importance-mode value f*(a -> b) |cos b| differs from its radiance-mode
+    value with the directions swapped, f(b -> a) |cos a| |cos b| / |cos a|, by more than 1e-3
+    of their size at any probe pair (_probe_pairs; uv varied over the pairs). Mitsuba 3.9.1's
+    ``hair`` (its azimuthal offset is read from wi alone) and ``principledthin`` (its thin
+    transmission) are not reciprocal: light subpaths must then use connect.adjoint_eval."""
+    from .connect import CTX_IMPORTANCE, CTX_RADIANCE
+    a, b = _probe_pairs()
+    n = len(a)
+
+    def vec(x):
+        return mi.Vector3f(*[mi.Float(x[:, c].astype(np.float32)) for c in range(3)])
+
+    def surface(wi):
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi, si.n = vec(wi), mi.Normal3f(0, 0, 1)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
+        k = np.arange(n)
+        si.uv = mi.Point2f(mi.Float((k * 0.618034 % 1).astype(np.float32)), mi.Float((k * 0.754878 % 1).astype(np.float32)))
+        if mi.is_spectral:
+            si.wavelengths = mi.Spectrum(450, 520, 590, 660)
+        return si
+
+    f_imp = np.atleast_2d(np.array(bsdf.eval(CTX_IMPORTANCE, surface(a), vec(b))))
+    f_rad = np.atleast_2d(np.array(bsdf.eval(CTX_RADIANCE, surface(b), vec(a)))) * np.abs(b[:, 2] / a[:, 2])
+    diff = np.abs(f_imp - f_rad)
+    return bool((diff > 1e-3 * (np.abs(f_imp) + np.abs(f_rad)) + 1e-6).any())
+
+
+def scene_non_reciprocal(scene: mi.Scene) -> bool:
+    """True if a BSDF of the scene is not reciprocal (_non_reciprocal): only BSDFs with classes
+    outside RECIPROCAL_CLASSES are probed."""
+    bsdfs = _distinct([s.bsdf() for s in scene.shapes() if s.bsdf() is not None])
+    return any(_non_reciprocal(b) for b in bsdfs if not _known_reciprocal(b))
+
+
 # BSDF and spectrum classes (as Mitsuba 3.9 prints them) whose values depend neither on the
 # surface's uv nor on its tangent unless Mitsuba flags them Anisotropic: a BSDF built only from
 # these needs neither stored (a texture, mesh attribute, normal map or unknown plugin does)

@@ -98,7 +98,10 @@ def scene_fingerprint(scene):
     for name in params.keys():
         if name.endswith('vertex_normals'):     # computed from the positions and faces, in any order
             continue
-        value = params[name]
+        try:
+            value = params[name]
+        except TypeError:               # Mitsuba 3.9.1's hair lists a parameter it cannot return
+            value = None
         try:
             data = np.asarray(value, dtype=np.float64).tobytes()
         except (TypeError, ValueError, RuntimeError):
