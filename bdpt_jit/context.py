@@ -68,7 +68,12 @@ class Context:
     hide_emitters      directly visible emitters hidden
     has_delta          the scene has a BSDF with a delta lobe (delta handling traced)
     refracts           the scene has a BSDF with a transmission lobe that refracts (scene_refracts)
-    exact_adjoint      a BSDF perturbs its shading frame (connect.adjoint_eval)
+    exact_adjoint      light vertices take connect.adjoint_eval: a BSDF perturbs its shading
+                       frame, or one is not reciprocal (scene_check._non_reciprocal: hair,
+                       principledthin) and the technique combines strategies, which must all
+                       estimate path's integrand vertex by vertex. lt alone keeps Mitsuba's
+                       importance-mode value (ptracer's estimator), the one hair's own sampling
+                       covers: with the swapped value lt was 1.1% dark on hair curves
     record             the light-vertex record type (store.record_type)
     diffuse            connect.DiffuseTable, or None unless every BSDF is a constant diffuse
     fuse_draw          a camera vertex's emitter-sampling evaluation and its scatter's BSDF sample
@@ -118,9 +123,8 @@ class Context:
                        camera_chains=bool(ad_geometry) and self.has_delta, merge_everywhere=merge_everywhere)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
-        # light subpaths take the exact adjoint (connect.adjoint_eval) where a BSDF perturbs its
-        # shading frame or is not reciprocal
-        self.exact_adjoint = scene_perturbs_normals(scene) or scene_non_reciprocal(scene)
+        self.exact_adjoint = (scene_perturbs_normals(scene)
+                              or (technique not in ('lt', 'pt') and scene_non_reciprocal(scene)))
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
         self.beams = (self.media is not None and self.media.info.any and self.strategies.trace_merge

@@ -281,8 +281,8 @@ def _non_reciprocal(bsdf) -> bool:
     """Whether ``bsdf``'s importance-mode value f*(a -> b) |cos b| differs from its radiance-mode
     value with the directions swapped, f(b -> a) |cos a| |cos b| / |cos a|, by more than 1e-3
     of their size at any probe pair (_probe_pairs; uv varied over the pairs). Mitsuba 3.9.1's
-    ``hair`` (its azimuthal offset is read from wi alone) and ``principledthin`` (its thin
-    transmission) are not reciprocal: light subpaths must then use connect.adjoint_eval."""
+    ``hair`` (its azimuthal offset is read from wi) and ``principledthin`` (its thin
+    transmission) are not reciprocal."""
     from .connect import CTX_IMPORTANCE, CTX_RADIANCE
     a, b = _probe_pairs()
     n = len(a)
