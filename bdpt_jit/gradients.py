@@ -174,7 +174,7 @@ def slide(c, si, si_next, wo, active):
     values stay those of the traced hit (where the re-traced ray finds another primitive, as it
     may at an edge, the hit keeps its material-point derivative)."""
     ray = spawn(si.p, si.n, c.offsets.error(si.p, si.shape), wo, si.time, si.wavelengths)   # rays.py
-    hit = c.scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+    hit = c.offsets.intersect(c.scene, ray, active, mi.RayFlags.All)
     same = active & hit.is_valid() & (hit.prim_index == si_next.prim_index) & (hit.shape == si_next.shape)
     for name in _SLIDING:
         old = getattr(si_next, name)
@@ -258,7 +258,7 @@ class ADSampling(Sampling):
         if primary:
             check_technique(c)
             return super().intersect(ray, active)
-        si = c.scene.ray_intersect(ray, mi.RayFlags.All | mi.RayFlags.FollowShape, False, active)
+        si = c.offsets.intersect(c.scene, ray, active, mi.RayFlags.All | mi.RayFlags.FollowShape)
         return c.offsets.project_to_triangle(si, active)      # rays.py: the mesh error bound assumes it
 
     def sample_bsdf(self, bsdf, mode, si, u1, u2, active):

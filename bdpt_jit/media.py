@@ -357,7 +357,7 @@ class MediumTracer:
         ok, going, crossings = mi.Bool(active), mi.Bool(active), dr.zeros(mi.UInt32, n)
         dr.make_opaque(tr, tr_hom, tmaj, crossings)     # (literals: Dr.Jit folds their updates, and re-recording fails)
         while going:
-            si = self.offsets.project_to_surface(self.scene.ray_intersect(ray, going), going)
+            si = self.offsets.project_to_surface(self.offsets.intersect(self.scene, ray, going), going)
             hit = going & si.is_valid()
             seg = self._segment_tr(ray, dr.select(hit, si.t, ray.maxt), medium, sampler, going, tracking)
             tr[going], tr_hom[going] = mi.Spectrum(tr * seg[0]), mi.Spectrum(tr_hom * seg[1])
@@ -473,7 +473,7 @@ class MediumTracer:
         collided, ok, going, crossings = dr.zeros(mi.Bool, n), dr.zeros(mi.Bool, n), mi.Bool(active), dr.zeros(mi.UInt32, n)
         dr.make_opaque(tr_hom, w, tmaj, found, si_end, factor, collided, ok, crossings)
         while going:
-            si = self.offsets.project_to_surface(self.scene.ray_intersect(ray, going), going)
+            si = self.offsets.project_to_surface(self.offsets.intersect(self.scene, ray, going), going)
             hit = going & si.is_valid()
             coll, mei, seg_hom, seg_w, seg_maj, f = self._collide(ray, dr.select(hit, si.t, ray.maxt),
                                                                    medium, c, sampler, going)

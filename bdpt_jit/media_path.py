@@ -285,7 +285,7 @@ def enclosing_medium(scene, offsets, p, d, active, max_hits=64):
     found = dr.zeros(mi.MediumPtr, dr.width(p))
     going, hits = mi.Bool(active), dr.zeros(mi.UInt32, dr.width(p))
     while going:
-        si = scene.ray_intersect(ray, going)
+        si = offsets.intersect(scene, ray, going)
         going &= si.is_valid()
         at = going & si.is_medium_transition()
         found = dr.select(at, si.target_medium(-ray.d), found)      # the side the ray came from

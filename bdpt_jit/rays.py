@@ -128,6 +128,7 @@ class RayOffsets:
         self.cylinders = self._cylinder_tables(scene)     # any cylinder: else the kernels leave it out
         quadric = any(str(s.class_name()) in QUADRIC_SHAPES for s in scene.shapes())
         self.far_rel = QUADRIC_REL if quadric else ERR_REL
+        self.curve_ends = self._curve_end_table(scene)    # any B-spline curve: else left out
 
     def _cylinder_tables(self, scene):
         """Per shape index, the rows of the to_object and to_world matrices of the scene's
@@ -144,6 +145,47 @@ class RayOffsets:
         self.cyl_fwd = [mi.Vector4f(*row) for row in fwd]
         self.cyl_inv = [mi.Vector4f(*row) for row in inv]
         return True
+
+    def _curve_end_table(self, scene):
+        """Per shape index, the largest segment parameter that the last segment of a
+        ``bsplinecurve`` may hold (``clamp_curve_ends``); 0 elsewhere. False without such curves."""
+        ends = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): _last_segment_end(sh.primitive_count())
+                for sh in scene.shapes() if str(sh.class_name()) == 'BSplineCurve'}
+        if not ends:
+            return False
+        table = np.zeros(self.size, np.float32)
+        last = np.zeros(self.size, np.uint32)
+        for i, (v_max, n) in ends.items():
+            table[i], last[i] = v_max, n - 1
+        self.curve_v_max, self.curve_last = mi.Float(table), mi.UInt32(last)
+        return True
+
+    def clamp_curve_ends(self, pi, active):
+        """``pi`` with the segment parameter of hits at the far end of a ``bsplinecurve``'s
+        last segment kept below the value whose global parameter (v + N - 1) / N rounds to 1:
+        Mitsuba 3.9.1 then floors v N to N unclipped (bsplinecurve.cpp ``partials``), reads its
+        segment table one past the end and control points at whatever that holds (a segfault
+        at random: one render in ten of 60 strands at 48 x 48, 256 spp; Mitsuba's own ``path``
+        reads there too). The hit point is o + t d, unchanged; its frame moves by less than
+        the float spacing of the curve's parameter. In place."""
+        if not self.curve_ends:
+            return pi
+        idx, known = self._known(pi.shape)
+        at_end = active & pi.is_valid() & known & (pi.prim_index == dr.gather(mi.UInt32, self.curve_last, idx, known))
+        v_max = dr.gather(mi.Float, self.curve_v_max, idx, at_end)
+        pi.prim_uv = mi.Point2f(dr.select(at_end & (v_max > 0), dr.minimum(pi.prim_uv.x, v_max), pi.prim_uv.x),
+                                pi.prim_uv.y)
+        return pi
+
+    def intersect(self, scene, ray, active, flags=None):
+        """scene.ray_intersect (with ``flags``: Mitsuba's (ray, flags, coherent, active) form),
+        its hits at the end of a B-spline curve clamped first (``clamp_curve_ends``)."""
+        if not self.curve_ends:
+            if flags is None:
+                return scene.ray_intersect(ray, active)
+            return scene.ray_intersect(ray, flags, False, active)
+        pi = self.clamp_curve_ends(scene.ray_intersect_preliminary(ray, False, active), active)
+        return pi.compute_surface_interaction(ray, mi.RayFlags.All if flags is None else flags, active)
 
     def _known(self, shape):
         idx = dr.reinterpret_array(mi.UInt32, shape)
@@ -261,3 +303,14 @@ def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL, wavelengths=No
     o_inf = offset_origin(p, n, err, ds.d)
     return mi.Ray3f(dr.select(inf, o_inf, to.o), dr.select(inf, ds.d, to.d),
                     dr.select(inf, dr.largest(mi.Float), to.maxt), time, to.wavelengths)
+
+
+def _last_segment_end(n):
+    """(a float32 v in [0, 1], within two float spacings of n below 1, for which Mitsuba's
+    B-spline computations keep the last of ``n`` segments: floor(((v + (n - 1)) / n) * n) =
+    n - 1 in float32 (0 past n = 2^24), and n)."""
+    f = np.float32
+    v = min(f(1.0), f(np.nextafter(f(n), f(0.0)) - f(n - 1)))     # v + n - 1 below n
+    while v > 0 and np.floor(f(f(f(v + f(n - 1)) / f(n)) * f(n))) >= n:
+        v = np.nextafter(v, f(0.0))
+    return max(float(v), 0.0), int(n)

@@ -28,7 +28,7 @@ class Sampling:
         """scene.ray_intersect; hits on triangle meshes moved onto their triangle's plane
         (rays.RayOffsets.project_to_triangle: the mesh error bound assumes it). ``primary``: a
         camera ray's first hit."""
-        si = self.ctx.scene.ray_intersect(ray, active)
+        si = self.ctx.offsets.intersect(self.ctx.scene, ray, active)
         return self.ctx.offsets.project_to_surface(si, active)
 
     def preliminary(self, ray, active):
@@ -39,6 +39,7 @@ class Sampling:
     def resolve(self, pi, ray, active):
         """The surface interaction of the preliminary hit ``pi`` of ``ray``: what ``intersect``
         returns for ``ray`` (Mitsuba's scene.ray_intersect is these two steps)."""
+        pi = self.ctx.offsets.clamp_curve_ends(pi, active)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
         return self.ctx.offsets.project_to_surface(si, active)
 

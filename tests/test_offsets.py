@@ -176,6 +176,62 @@ def test_every_ray_leaves_through_rays_py():
         assert 'spawn_ray' not in text, f'{f.name} spawns a ray with Mitsuba\'s fixed epsilon'
 
 
+def test_every_surface_interaction_through_rays_py():
+    """Every hit's surface interaction is computed by rays.RayOffsets.intersect or after
+    clamp_curve_ends (sampling.Sampling.resolve): none from Mitsuba's scene.ray_intersect
+    elsewhere (scene_check's uv-map test of emitter meshes, before any render, excepted)."""
+    import pathlib
+    import bdpt_jit
+    root = pathlib.Path(bdpt_jit.__file__).parent
+    for f in root.rglob('*.py'):
+        text = f.read_text()
+        if f.name not in ('rays.py', 'scene_check.py'):
+            assert '.ray_intersect(' not in text, f'{f.name} computes hits without rays.RayOffsets.intersect'
+        if f.name not in ('rays.py', 'sampling.py'):
+            assert 'compute_surface_interaction(' not in text, f'{f.name} resolves hits unclamped'
+
+
+def test_last_segment_end_keeps_the_last_segment():
+    """rays._last_segment_end(n): a float32 v within two float spacings of n below 1 for which
+    Mitsuba 3.9.1's B-spline code keeps the last of n segments, floor(((v + n - 1) / n) n) =
+    n - 1 in float32; at n = 180, 1 - 1e-6 would give segment 180, past the end."""
+    from bdpt_jit.rays import _last_segment_end
+    f = np.float32
+
+    def segment(v, n):
+        return int(np.floor(f(f(f(f(v) + f(n - 1)) / f(n)) * f(n))))
+
+    assert segment(1 - 1e-6, 180) == 180
+    for n in (1, 2, 3, 180, 1000, 123457, 2 ** 20 + 3):
+        v, m = _last_segment_end(n)
+        assert m == n and 0 < v < 1
+        assert segment(v, n) == n - 1, n
+        assert v >= 1 - 2 * np.spacing(f(n)), n
+
+
+def test_hits_at_the_end_of_a_bspline_curve_are_clamped(tmp_path):
+    """clamp_curve_ends moves the segment parameter of a hit on the last segment of a
+    bsplinecurve below rays._last_segment_end, and no other hit: found with 60 strands, where
+    Mitsuba's surface interaction read one segment past the end (a segfault at random)."""
+    from bdpt_jit.rays import RayOffsets, _last_segment_end
+    path = tmp_path / 'strands.txt'
+    path.write_text('\n'.join(f'{0.1 * k} {y} 0 0.02' for k in range(2) for y in (-1, -0.5, 0, 0.5)) + '\n')
+    d = sc.cornell()
+    d['strand'] = {'type': 'bsplinecurve', 'filename': str(path)}
+    scene = mi.load_dict(d)
+    curve = [s for s in scene.shapes() if str(s.class_name()) == 'BSplineCurve'][0]
+    wall = [s for s in scene.shapes() if str(s.class_name()) != 'BSplineCurve'][0]
+    n = curve.primitive_count()
+    off = RayOffsets(scene)
+    pi = dr.zeros(mi.PreliminaryIntersection3f, 4)
+    pi.valid, pi.t = mi.Bool(True), mi.Float(1.0)
+    pi.shape = mi.ShapePtr([curve, curve, wall, curve])
+    pi.prim_index = mi.UInt32([n - 1, n - 2, n - 1, n - 1])
+    pi.prim_uv = mi.Point2f(mi.Float([1.0, 1.0, 1.0, 0.25]), 0.5)
+    out = np.array(off.clamp_curve_ends(pi, mi.Bool(True)).prim_uv.x)
+    assert out.tolist() == [np.float32(_last_segment_end(n)[0]), 1.0, 1.0, 0.25]
+
+
 # ---------------------------------------------------------------------------- per strategy
 @pytest.mark.parametrize('placement', ['scale_1e-4', 'scale_1e5', 'move_1e3_x'])
 def test_every_strategy_is_the_same_at_every_scale(placement):

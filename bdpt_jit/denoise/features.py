@@ -128,7 +128,7 @@ def _step(tracing, sampler, ray, active, depth, max_depth, albedo, normal):
     """One vertex of the walk: record the features where it stops, else the next ray
     (``tracing``: the scene and its rays.RayOffsets)."""
     scene, offsets = tracing
-    si = scene.ray_intersect(ray, active)
+    si = offsets.intersect(scene, ray, active)
     hit = active & si.is_valid()
     bsdf = si.bsdf(ray)
     flags = bsdf.flags()
