@@ -97,7 +97,7 @@ class LightTracer:
                        si_e.wavelengths)
         et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.p, ps.n, ds.d, ok), None, ok) \
             if c.media is not None else None
-        tr = visibility(c, camera_to(ds, (ps.p, ps.n, e.err), c, si_e), ok) if et is None else et.tr
+        tr = visibility(c, t1_shadow_ray(c, ray, ds, (ps.p, ps.n, e.err), si_e), ok) if et is None else et.tr
         ok &= visible(tr)
         pdf_light_a = e.pdf_light_a
         pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), cos_g, dr.square(ds.dist))  # We |cos| / d^2
@@ -134,7 +134,7 @@ class LightTracer:
         ok &= valid & (dr.max(f) > 0)
         ray = v.spawn_to(c, ds.p, mi.Normal3f(0.0), 0.0)
         et = self.camera_edge(ray, ds, v.medium_towards(ds.d), v, ok) if c.media is not None else None
-        tr = visibility(c, camera_to(ds, (si.p, si.n, v.err), c, si), ok) if et is None else et.tr
+        tr = visibility(c, t1_shadow_ray(c, ray, ds, (si.p, si.n, v.err), si), ok) if et is None else et.tr
         ok &= visible(tr)
         if et is None:
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))
@@ -217,11 +217,15 @@ class LightTracer:
         return carry
 
 
-def camera_to(ds, end, ctx, si):
-    """The shadow ray of a t=1 connection from the camera's point ``ds.p`` to the vertex ``end``
-    ((p, n, err)): traced in the direction a camera ray takes, as Mitsuba's path and the other
-    strategies see the scene. Visibility is not symmetric in Mitsuba: curves cull the faces a
-    ray meets from inside, and a B-spline strand's open ends let a ray from the floor under it
-    out through its wall, not the camera's in (lt 0.2% bright over 60 strands at 48 x 48, 2.5%
-    in blocks near their feet, traced from the vertex)."""
+def t1_shadow_ray(ctx, ray, ds, end, si):
+    """The shadow ray of a t=1 connection: ``ray`` (from the vertex ``end`` = (p, n, err) to the
+    camera's point ``ds.p``), or in a scene with curves the same segment traced from the camera,
+    as camera rays and the other connections see the scene. Mitsuba culls the faces of curves
+    that a ray meets from inside, and a B-spline strand's ends are open, so visibility there
+    depends on the direction (rays.CULLED_SHAPES): traced from the vertex, lt was a tenth of pt
+    on an open tube. Elsewhere the vertex end leaves its surface by its error bound and the
+    far stop (rays.RayOffsets.far_rel) lies at the camera: traced from the camera, a vertex on
+    a quadric inside an instance was hidden by its own surface (-0.5%)."""
+    if not ctx.offsets.one_sided:
+        return ray
     return spawn_to((ds.p, mi.Normal3f(0.0), 0.0), end, si.time, ctx.offsets.far_rel, si.wavelengths)

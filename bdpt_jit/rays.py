@@ -67,6 +67,7 @@ QUADRIC_SHAPES = ('Sphere', 'Cylinder', 'BSplineCurve', 'LinearCurve', 'SDFGrid'
 # various_shapes) rendered 3% dark with it, right with 4 times it (and with 100 times). A hit
 # inside an instance is on a shape of unknown kind: it takes it too.
 COARSE_REL = 4 * ERR_REL
+CULLED_SHAPES = ('BSplineCurve', 'LinearCurve')
 COARSE_SHAPES = ('SDFGrid',)
 
 
@@ -129,6 +130,9 @@ class RayOffsets:
         quadric = any(str(s.class_name()) in QUADRIC_SHAPES for s in scene.shapes())
         self.far_rel = QUADRIC_REL if quadric else ERR_REL
         self.curve_ends = self._curve_end_table(scene)    # any B-spline curve: else left out
+        # Mitsuba culls the faces of curves that rays meet from inside: visibility between two
+        # points then depends on the direction it is traced in (light_path.t1_shadow_ray)
+        self.one_sided = any(str(s.class_name()) in CULLED_SHAPES for s in scene.shapes())
 
     def _cylinder_tables(self, scene):
         """Per shape index, the rows of the to_object and to_world matrices of the scene's
