@@ -181,6 +181,29 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
                         "carries no triangle to read a mesh attribute at (bitmap and checkerboard "
                         "radiance are supported)")
     _check_instanced_media(scene, sensor)
+    _check_monochrome_bsdfs(scene)
+
+
+# BSDF classes that Mitsuba 3.9.1 cannot evaluate in monochrome variants, and why
+MONO_REFUSED_BSDFS = {
+    'Hair': "Mitsuba 3.9.1's hair computes its absorption with srgb_model_eval, which fails in "
+            "monochrome variants (its own path fails too)",
+}
+
+
+def _check_monochrome_bsdfs(scene):
+    """Refuse, naming the shape, a BSDF that cannot be evaluated in a monochrome variant,
+    before any kernel is traced (else: an error from deep inside the render)."""
+    if not mi.is_monochromatic:
+        return
+    for shape in scene.shapes():
+        text = str(shape.bsdf()) if shape.bsdf() is not None else ''
+        for cls, why in MONO_REFUSED_BSDFS.items():
+            if cls + '[' in text:
+                where = f"the shape '{shape.id()}'" if shape.id() else f"a {_plugin_name(shape)} shape"
+                raise UnsupportedSceneError(
+                    f"bdpt: the BSDF of {where} ({cls.lower()}) cannot be rendered in the "
+                    f"variant '{mi.variant()}': {why}; use an RGB or spectral variant")
 
 
 def _check_instanced_media(scene, sensor):

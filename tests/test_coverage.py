@@ -532,6 +532,23 @@ def test_hair_on_boxes_agrees_with_path_in_bdpt():
           {'type': 'bdpt', 'max_depth': 5, 'technique': 'bdpt'}, 256)
 
 
+def test_hair_refused_in_monochrome_variants():
+    """Mitsuba 3.9.1's hair cannot be evaluated in a monochrome variant (its own path fails
+    deep inside with "srgb_model_eval(): invoked for a non-spectral color type"): refused before
+    any kernel, naming the shape and the variants that work (in a process of its own: the
+    variant is switched)."""
+    import subprocess
+    import sys
+    code = ("import sys, mitsuba as mi\nmi.set_variant('llvm_ad_mono')\nimport bdpt_jit\n"
+            f"sys.path.insert(0, {os.path.join(REPO, 'tests')!r})\n"
+            "from test_coverage import hair_boxes, cause_chain\n"
+            "try:\n    mi.render(mi.load_dict(hair_boxes()), integrator=mi.load_dict({'type': 'bdpt'}), spp=1)\n"
+            "except Exception as e:\n    print(cause_chain(e))\n")
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300).stdout
+    assert re.search(r"bdpt: the BSDF of a \w+ shape \(hair\) cannot be rendered in the variant "
+                     r"'llvm_ad_mono'.*use an RGB or spectral variant", out), out
+
+
 def test_the_reciprocity_probe():
     """scene_check._non_reciprocal finds hair and principledthin's thin transmission, and no
     BSDF that is reciprocal (rough glass of alpha 0.001 included: float rounding stays below
