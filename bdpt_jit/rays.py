@@ -61,7 +61,7 @@ PROJECT_RATIO = 16.0
 # at distance 2.5) test as blocked by the light itself on 19% of the lanes when they stop
 # 1e-6 short, 0.6% at 1e-5 relative, 0.2% at 1e-4, none from 3e-4 (Mitsuba stops 8.9e-4 short).
 QUADRIC_REL = 2.0 ** -11
-QUADRIC_SHAPES = ('Sphere', 'Cylinder', 'BSplineCurve', 'LinearCurve', 'SDFGrid')
+QUADRIC_SHAPES = ('Sphere', 'Cylinder', 'BSplineCurve', 'LinearCurve', 'SDFGrid', 'Ellipsoids')
 # Hit points of SDF grids (a cubic solved per voxel) lie further off their surface than the
 # general bound allows: an instanced grid 24 units from the camera (Mitsuba's test scene
 # various_shapes) rendered 3% dark with it, right with 4 times it (and with 100 times). A hit
