@@ -129,10 +129,11 @@ class RayOffsets:
         self.cylinders = self._cylinder_tables(scene)     # any cylinder: else the kernels leave it out
         quadric = any(str(s.class_name()) in QUADRIC_SHAPES for s in scene.shapes())
         self.far_rel = QUADRIC_REL if quadric else ERR_REL
-        self.curve_ends = self._curve_end_table(scene)    # any B-spline curve: else left out
+        every = all_shapes(scene)
+        self.curve_ends = self._curve_end_table(every)    # any B-spline curve: else left out
         # Mitsuba culls the faces of curves that rays meet from inside: visibility between two
         # points then depends on the direction it is traced in (light_path.t1_shadow_ray)
-        self.one_sided = any(str(s.class_name()) in CULLED_SHAPES for s in scene.shapes())
+        self.one_sided = any(str(s.class_name()) in CULLED_SHAPES for s in every)
 
     def _cylinder_tables(self, scene):
         """Per shape index, the rows of the to_object and to_world matrices of the scene's
@@ -150,15 +151,17 @@ class RayOffsets:
         self.cyl_inv = [mi.Vector4f(*row) for row in inv]
         return True
 
-    def _curve_end_table(self, scene):
+    def _curve_end_table(self, shapes):
         """Per shape index, the largest segment parameter that the last segment of a
-        ``bsplinecurve`` may hold (``clamp_curve_ends``); 0 elsewhere. False without such curves."""
+        ``bsplinecurve`` among ``shapes`` may hold (``clamp_curve_ends``); 0 elsewhere. False
+        without such curves."""
         ends = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]): _last_segment_end(sh.primitive_count())
-                for sh in scene.shapes() if str(sh.class_name()) == 'BSplineCurve'}
+                for sh in shapes if str(sh.class_name()) == 'BSplineCurve'}
         if not ends:
             return False
-        table = np.zeros(self.size, np.float32)
-        last = np.zeros(self.size, np.uint32)
+        self.curve_size = max(ends) + 1        # (curves inside instances may lie past self.size)
+        table = np.zeros(self.curve_size, np.float32)
+        last = np.zeros(self.curve_size, np.uint32)
         for i, (v_max, n) in ends.items():
             table[i], last[i] = v_max, n - 1
         self.curve_v_max, self.curve_last = mi.Float(table), mi.UInt32(last)
@@ -174,7 +177,8 @@ class RayOffsets:
         the float spacing of the curve's parameter. In place."""
         if not self.curve_ends:
             return pi
-        idx, known = self._known(pi.shape)
+        idx = dr.reinterpret_array(mi.UInt32, pi.shape)
+        known = (idx < self.curve_size) & (idx > 0)
         at_end = active & pi.is_valid() & known & (pi.prim_index == dr.gather(mi.UInt32, self.curve_last, idx, known))
         v_max = dr.gather(mi.Float, self.curve_v_max, idx, at_end)
         pi.prim_uv = mi.Point2f(dr.select(at_end & (v_max > 0), dr.minimum(pi.prim_uv.x, v_max), pi.prim_uv.x),
@@ -307,6 +311,24 @@ def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL, wavelengths=No
     o_inf = offset_origin(p, n, err, ds.d)
     return mi.Ray3f(dr.select(inf, o_inf, to.o), dr.select(inf, ds.d, to.d),
                     dr.select(inf, dr.largest(mi.Float), to.maxt), time, to.wavelengths)
+
+
+def all_shapes(scene):
+    """scene.shapes() and, in a scene with instances, the shapes inside its shape groups, which
+    scene.shapes() does not list (found by mi.traverse: the objects its parameters belong to)."""
+    shapes = list(scene.shapes())
+    if not any(str(s.class_name()) == 'Instance' for s in shapes):
+        return shapes
+    seen = {int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes}
+    params = mi.traverse(scene)
+    for key in params.keys():
+        node = params.properties[key][2]
+        if isinstance(node, mi.Shape):
+            i = int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(node))[0])
+            if i not in seen:
+                seen.add(i)
+                shapes.append(node)
+    return shapes
 
 
 def _last_segment_end(n):

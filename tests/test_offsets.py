@@ -247,18 +247,25 @@ def test_last_segment_end_keeps_the_last_segment():
         assert v >= 1 - 2 * np.spacing(f(n)), n
 
 
-def test_hits_at_the_end_of_a_bspline_curve_are_clamped(tmp_path):
+@pytest.mark.parametrize('instanced', [False, True])
+def test_hits_at_the_end_of_a_bspline_curve_are_clamped(tmp_path, instanced):
     """clamp_curve_ends moves the segment parameter of a hit on the last segment of a
     bsplinecurve below rays._last_segment_end, and no other hit: found with 60 strands, where
-    Mitsuba's surface interaction read one segment past the end (a segfault at random)."""
-    from bdpt_jit.rays import RayOffsets, _last_segment_end
+    Mitsuba's surface interaction read one segment past the end (a segfault at random). Curves
+    inside instanced shape groups too (rays.all_shapes: scene.shapes() lists the instances)."""
+    from bdpt_jit.rays import RayOffsets, _last_segment_end, all_shapes
     path = tmp_path / 'strands.txt'
     path.write_text('\n'.join(f'{0.1 * k} {y} 0 0.02' for k in range(2) for y in (-1, -0.5, 0, 0.5)) + '\n')
     d = sc.cornell()
-    d['strand'] = {'type': 'bsplinecurve', 'filename': str(path)}
+    strand = {'type': 'bsplinecurve', 'filename': str(path)}
+    if instanced:
+        d['group'] = {'type': 'shapegroup', 'strand': strand}
+        d['strands'] = {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'group'}, 'to_world': T().scale(0.5)}
+    else:
+        d['strand'] = strand
     scene = mi.load_dict(d)
-    curve = [s for s in scene.shapes() if str(s.class_name()) == 'BSplineCurve'][0]
-    wall = [s for s in scene.shapes() if str(s.class_name()) != 'BSplineCurve'][0]
+    curve = [s for s in all_shapes(scene) if str(s.class_name()) == 'BSplineCurve'][0]
+    wall = [s for s in scene.shapes() if str(s.class_name()) == 'Rectangle'][0]
     n = curve.primitive_count()
     off = RayOffsets(scene)
     pi = dr.zeros(mi.PreliminaryIntersection3f, 4)
