@@ -74,6 +74,8 @@ class Context:
                        estimate path's integrand vertex by vertex. lt alone keeps Mitsuba's
                        importance-mode value (ptracer's estimator), the one hair's own sampling
                        covers: with the swapped value lt was 1.1% dark on hair curves
+    defensive          technique lt with the exact adjoint: light subpaths mix uniform directions
+                       into the BSDF's (transport._defensive)
     record             the light-vertex record type (store.record_type)
     diffuse            connect.DiffuseTable, or None unless every BSDF is a constant diffuse
     fuse_draw          a camera vertex's emitter-sampling evaluation and its scatter's BSDF sample
@@ -125,6 +127,7 @@ class Context:
         self.rr_depth = settings['rr_depth']
         self.exact_adjoint = (scene_perturbs_normals(scene)
                               or (technique not in ('lt', 'pt') and scene_non_reciprocal(scene)))
+        self.defensive = technique == 'lt' and self.exact_adjoint and not ad     # transport._defensive
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
         self.beams = (self.media is not None and self.media.info.any and self.strategies.trace_merge
