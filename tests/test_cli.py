@@ -100,6 +100,29 @@ def test_quiet_and_other_integrator(tmp_path):
     assert 'bdpt.rays.rays' not in header
 
 
+def test_the_scene_s_integrator_settings_carry_over(tmp_path):
+    """A scene written for Mitsuba's path with hidden emitters, a max_depth and an rr_depth:
+    bdpt (and another Mitsuba integrator) renders with the same three (SHARED_PARAMS); before,
+    only max_depth came over and bdpt showed the emitters the scene hid. Options still win."""
+    text = open(CORNELL).read().replace('<integer name="max_depth" value="$max_depth"/>',
+                                        '<integer name="max_depth" value="$max_depth"/>'
+                                        '<boolean name="hide_emitters" value="true"/><integer name="rr_depth" value="3"/>')
+    assert 'hide_emitters' in text
+    scene_file = tmp_path / 'hidden.xml'
+    scene_file.write_text(text)
+    cases = [([], 'bdpt', 'true', '3'), (['--no-hide-emitters'], 'bdpt', 'false', '3'),
+             (['--integrator', 'volpath'], 'volpath', 'true', '3')]
+    for extra, name, hidden, rr in cases:
+        out = tmp_path / f'{name}{len(extra)}.exr'
+        r = run_cli(str(scene_file), '-D', 'res=8', '-D', 'integrator=path', '--spp', '1', '-q', '-o', str(out),
+                    *extra, *VARIANT)
+        assert r.returncode == 0, r.stderr
+        header = read_exr(out)[2]
+        assert header['bdpt.integrator'] == name, header['bdpt.integrator']
+        assert str(header['bdpt.param.hide_emitters']).lower() == hidden, (extra, header['bdpt.param.hide_emitters'])
+        assert str(header['bdpt.param.rr_depth']) == rr and str(header['bdpt.param.max_depth']) == '8', extra
+
+
 def test_time_budget(tmp_path):
     out = tmp_path / 'timed.exr'
     budget = 2.5

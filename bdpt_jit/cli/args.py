@@ -24,8 +24,9 @@ def _add_param_options(parser):
     from ..params import PARAMS
     g = parser.add_argument_group(
         'integrator parameters', 'the bdpt plugin\'s parameters (params.py); unset ones come from the '
-        'scene\'s integrator if it is bdpt, else take their defaults. max_depth, rr_depth and '
-        'hide_emitters also apply to Mitsuba\'s integrators.')
+        'scene\'s integrator if it is bdpt, else take their defaults (max_depth, rr_depth and '
+        'hide_emitters from any scene integrator that has them); these three also apply to '
+        'Mitsuba\'s integrators.')
     for p in PARAMS:
         default_text = p.default_text
         if p.name == 'statistics':

@@ -155,13 +155,22 @@ def load_scene(mi, path, defines, integrator):
 
 
 # ----------------------------------------------------------------------------- integrator
-def _max_depth_of(integrator):
-    """The scene integrator's max_depth: bdpt's settings, or the value Mitsuba's integrators print."""
+def _shared_settings_of(integrator):
+    """The scene integrator's settings among SHARED_PARAMS that it has: bdpt's, or max_depth and
+    rr_depth as Mitsuba's integrators print them and hide_emitters as its sampling integrators
+    hold it (a scene written for path with hidden emitters renders them hidden here too)."""
     settings = getattr(integrator, 'settings', None)
-    if isinstance(settings, dict) and 'max_depth' in settings:
-        return settings['max_depth']
-    m = re.search(r'max_depth\s*=\s*(-?\d+)', str(integrator))
-    return int(m.group(1)) if m else None
+    if isinstance(settings, dict):
+        return {k: settings[k] for k in SHARED_PARAMS if k in settings}
+    found = {}
+    for name in ('max_depth', 'rr_depth'):
+        m = re.search(name + r'\s*=\s*(-?\d+)', str(integrator))
+        if m:
+            found[name] = int(m.group(1))
+    hide = getattr(integrator, 'hide_emitters', None)
+    if isinstance(hide, bool):
+        found['hide_emitters'] = hide
+    return found
 
 
 def make_integrator(args, scene):
@@ -180,17 +189,15 @@ def _load_bdpt(params):
 
 
 def _make_bdpt(args, scene):
-    """bdpt with the scene's settings (if its integrator is bdpt; else only its max_depth),
-    statistics on, and the options given."""
+    """bdpt with the scene's settings (if its integrator is bdpt; else those of SHARED_PARAMS it
+    has), statistics on, and the options given."""
     from ..integrator import BDPTIntegrator
     scene_integ = scene.integrator()
     params = {}
     if isinstance(scene_integ, BDPTIntegrator):
         params.update(scene_integ.settings)
-    else:
-        md = _max_depth_of(scene_integ) if scene_integ is not None else None
-        if md is not None:
-            params['max_depth'] = md
+    elif scene_integ is not None:
+        params.update(_shared_settings_of(scene_integ))
     params['statistics'] = True
     params.update(given_params(args))
     integ = _load_bdpt(params)
@@ -199,7 +206,8 @@ def _make_bdpt(args, scene):
 
 def _make_mitsuba(args, scene):
     """A Mitsuba integrator: the scene's own if it is that plugin and no option is given;
-    else a new one with the options given and the scene's max_depth, if the plugin takes one."""
+    else a new one with the options given and the scene's SHARED_PARAMS settings, if the plugin
+    takes them."""
     import mitsuba as mi
     from ..integrator import BDPTIntegrator
     given = given_params(args)
@@ -216,14 +224,14 @@ def _make_mitsuba(args, scene):
     same = (scene_integ is not None and not isinstance(scene_integ, BDPTIntegrator)
             and scene_integ.class_name() == bare.class_name())
     if same and not given:                          # the scene's own, with all its settings
-        md = _max_depth_of(scene_integ)
-        return scene_integ, ({} if md is None else {'max_depth': md})
+        return scene_integ, _shared_settings_of(scene_integ)
     params = dict(given)
-    if 'max_depth' not in params and scene_integ is not None:
-        md = _max_depth_of(scene_integ)
-        if md is not None:
-            try:                                    # the scene's path length, if the plugin takes one
-                return mi.load_dict({'type': args.integrator, 'max_depth': md, **params}), {'max_depth': md, **params}
+    inherited = {k: v for k, v in _shared_settings_of(scene_integ).items() if k not in params} \
+        if scene_integ is not None else {}
+    for keep in (inherited, {k: v for k, v in inherited.items() if k == 'max_depth'}):
+        if keep:
+            try:                                # the scene's settings, if the plugin takes them
+                return mi.load_dict({'type': args.integrator, **keep, **params}), {**keep, **params}
             except Exception:
                 pass
     try:
