@@ -127,9 +127,9 @@ class RayOffsets:
         self.rel = mi.Float(rel)
         self.any_mesh = bool(meshes)             # any mesh projected: else the kernels leave it out
         self.cylinders = self._cylinder_tables(scene)     # any cylinder: else the kernels leave it out
-        quadric = any(str(s.class_name()) in QUADRIC_SHAPES for s in scene.shapes())
+        every = all_shapes(scene)       # (those inside instances too)
+        quadric = any(str(s.class_name()) in QUADRIC_SHAPES for s in every)
         self.far_rel = QUADRIC_REL if quadric else ERR_REL
-        every = all_shapes(scene)
         self.curve_ends = self._curve_end_table(every)    # any B-spline curve: else left out
         # Mitsuba culls the faces of curves that rays meet from inside: visibility between two
         # points then depends on the direction it is traced in (light_path.t1_shadow_ray)

@@ -288,6 +288,27 @@ def _known_reciprocal(bsdf) -> bool:
     return all(n in RECIPROCAL_CLASSES or n.endswith(('Spectrum', 'Texture')) for n in names)
 
 
+def _vectors(x):
+    """mi.Vector3f of a numpy array of directions (n x 3)."""
+    return mi.Vector3f(*[mi.Float(x[:, c].astype(np.float32)) for c in range(3)])
+
+
+def _probe_surface(wi):
+    """A SurfaceInteraction3f per direction of ``wi`` (n x 3, local): the BSDF probes' surface
+    (_null_excludable, _non_reciprocal), its frame the identity, its uv spread over [0, 1)^2,
+    visible wavelengths in spectral variants."""
+    n = len(wi)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi, si.n = _vectors(wi), mi.Normal3f(0, 0, 1)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
+    k = np.arange(n)
+    si.uv = mi.Point2f(mi.Float((k * 0.618034 % 1).astype(np.float32)), mi.Float((k * 0.754878 % 1).astype(np.float32)))
+    if mi.is_spectral:
+        si.wavelengths = mi.Spectrum(450, 520, 590, 660)
+    return si
+
+
 def _probe_pairs(n=48):
     """Directions on a spiral over the whole sphere and every ordered pair of them not within
     0.05 of tangent at either end: (wi, wo) as numpy arrays (pairs x 3)."""
@@ -308,24 +329,8 @@ def _non_reciprocal(bsdf) -> bool:
     transmission) are not reciprocal."""
     from .connect import CTX_IMPORTANCE, CTX_RADIANCE
     a, b = _probe_pairs()
-    n = len(a)
-
-    def vec(x):
-        return mi.Vector3f(*[mi.Float(x[:, c].astype(np.float32)) for c in range(3)])
-
-    def surface(wi):
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.wi, si.n = vec(wi), mi.Normal3f(0, 0, 1)
-        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
-        si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
-        k = np.arange(n)
-        si.uv = mi.Point2f(mi.Float((k * 0.618034 % 1).astype(np.float32)), mi.Float((k * 0.754878 % 1).astype(np.float32)))
-        if mi.is_spectral:
-            si.wavelengths = mi.Spectrum(450, 520, 590, 660)
-        return si
-
-    f_imp = np.atleast_2d(np.array(bsdf.eval(CTX_IMPORTANCE, surface(a), vec(b))))
-    f_rad = np.atleast_2d(np.array(bsdf.eval(CTX_RADIANCE, surface(b), vec(a)))) * np.abs(b[:, 2] / a[:, 2])
+    f_imp = np.atleast_2d(np.array(bsdf.eval(CTX_IMPORTANCE, _probe_surface(a), _vectors(b))))
+    f_rad = np.atleast_2d(np.array(bsdf.eval(CTX_RADIANCE, _probe_surface(b), _vectors(a)))) * np.abs(b[:, 2] / a[:, 2])
     diff = np.abs(f_imp - f_rad)
     return bool((diff > 1e-3 * (np.abs(f_imp) + np.abs(f_rad)) + 1e-6).any())
 
@@ -485,10 +490,8 @@ def _null_excludable(bsdfs) -> bool:
     if not bsdfs:
         return False
     k = np.arange(64)
-    cos = mi.Float(((k % 8 + 0.5) / 8 * np.where(k < 32, 1.0, -1.0)).astype(np.float32))
-    si = dr.zeros(mi.SurfaceInteraction3f, len(k))
-    si.wi = mi.Vector3f(dr.safe_sqrt(1 - cos * cos), 0, cos)
-    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    cos = (k % 8 + 0.5) / 8 * np.where(k < 32, 1.0, -1.0)
+    si = _probe_surface(np.stack([np.sqrt(1 - cos * cos), np.zeros_like(cos), cos], axis=1))
     u1, u2 = mi.Float(((k // 8 % 4 + 0.5) / 4).astype(np.float32)), mi.Point2f(0.3, 0.7)
     for bsdf in bsdfs:
         for mode in (RADIANCE, IMPORTANCE):

@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import media_path
-from .connect import adjoint_correction, adjoint_eval, reverse_pdf_w
+from .connect import adjoint_correction, adjoint_eval, reverse_pdf_w, smooth_mask
 from .jitmath import safe_div
 from .loops import while_once
 from .mis import MISState
@@ -130,18 +130,20 @@ def _defensive(ctx, sampler, v, bs, bsdf_w, active):
     diffuse surface), and light tracing alone has no other strategy for those paths: lt was
     0.46% dark on tests/stability_cases.normal_mapped. The throughput of smooth samples is then
     the exact adjoint over this density (_reverse_pdf); of delta ones Mitsuba's weight over
-    1 - DEFENSIVE. Returns (bs, bsdf_w)."""
+    1 - DEFENSIVE. A BSDF without a smooth lobe is sampled as it is. Returns (bs, bsdf_w)."""
     u, u2 = sampler.next_1d(), sampler.next_2d()
     is_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    uniform = active & (u < DEFENSIVE)
+    mixed = active & smooth_mask(v.bsdf, ctx.diffuse)      # (a BSDF of delta lobes only: as it is)
+    uniform = mixed & (u < DEFENSIVE)
     bs.wo = dr.select(uniform, mi.warp.square_to_uniform_sphere(u2), bs.wo)
     smooth = uniform | ~is_delta
-    pdf_smooth = v.bsdf.pdf(bsdf_context(IMPORTANCE), v.si, bs.wo, active & smooth)
-    bs.pdf = dr.select(smooth, (1.0 - DEFENSIVE) * pdf_smooth + DEFENSIVE * mi.warp.square_to_uniform_sphere_pdf(bs.wo),
-                       (1.0 - DEFENSIVE) * bs.pdf)
+    pdf_smooth = v.bsdf.pdf(bsdf_context(IMPORTANCE), v.si, bs.wo, mixed & smooth)
+    share = dr.select(mixed, 1.0 - DEFENSIVE, 1.0)
+    bs.pdf = dr.select(mixed & smooth, share * pdf_smooth + DEFENSIVE * mi.warp.square_to_uniform_sphere_pdf(bs.wo),
+                       share * bs.pdf)
     bs.sampled_type = dr.select(uniform, mi.UInt32(int(mi.BSDFFlags.GlossyReflection)), bs.sampled_type)
     # (a uniform lane's weight is the exact adjoint's, set by _reverse_pdf: 1 keeps it going)
-    bsdf_w = dr.select(uniform, mi.Spectrum(1.0), dr.select(smooth, bsdf_w, bsdf_w * (1.0 / (1.0 - DEFENSIVE))))
+    bsdf_w = dr.select(uniform, mi.Spectrum(1.0), dr.select(smooth, bsdf_w, bsdf_w * dr.rcp(share)))
     return bs, bsdf_w
 
 

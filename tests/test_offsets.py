@@ -164,14 +164,15 @@ def test_shadow_rays_between_points_of_one_wall_and_of_a_corner(placement):
         assert not blocked.any(), f'{what}: {blocked.sum()} of {n} shadow rays blocked'
 
 
-@pytest.mark.parametrize('shape', ['ellipsoids', 'sphere'])
+@pytest.mark.parametrize('shape', ['ellipsoids', 'sphere', 'instanced sphere'])
 def test_shadow_rays_to_points_on_quadrics(shape):
     """A point on an analytic shape whose hit distance Mitsuba solves from a quadratic in
     single precision (rays.QUADRIC_SHAPES), found by a light ray from far away, and a shadow
     ray to it from a point that sees it, as connections and t=1 splats trace them
     (rays.spawn_to with RayOffsets.far_rel): nothing is in the way, yet with the general far
     stop 1-2% of such rays met the shape itself on ellipsoids (bdpt's ceiling 3-5% dark in
-    blocks of a box lit by light bounced off them), as on spheres before."""
+    blocks of a box lit by light bounced off them), as on spheres before, and on spheres inside
+    instances until the far stop looked inside them."""
     from bdpt_jit.rays import RayOffsets, spawn_to
     if shape == 'ellipsoids':
         body = {'type': 'ellipsoids', 'centers': mi.TensorXf(np.zeros((1, 3), np.float32)),
@@ -179,7 +180,11 @@ def test_shadow_rays_to_points_on_quadrics(shape):
                 'quaternions': mi.TensorXf(np.array([[0.2, 0.4, 0.1, 0.89]], np.float32))}
     else:
         body = {'type': 'sphere', 'radius': 0.2}
-    scene = mi.load_dict({'type': 'scene', 'body': body})
+    if shape == 'instanced sphere':      # (rays.all_shapes: scene.shapes() lists the instance only)
+        scene = mi.load_dict({'type': 'scene', 'group': {'type': 'shapegroup', 'body': body},
+                              'body': {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'group'}}})
+    else:
+        scene = mi.load_dict({'type': 'scene', 'body': body})
     off = RayOffsets(scene)
     rng = np.random.default_rng(11)
     n = 8192
