@@ -65,7 +65,8 @@ class CameraTracer:
         sampler = ps.sampler
         pixel = camera_pixels(ps)
         crop_w = int(c.camera.crop_size.x)
-        pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + sampler.next_2d()
+        in_pixel = (ps.pixel_sampler or sampler).next_2d()
+        pos = mi.Point2f(mi.Float(pixel % crop_w), mi.Float(pixel // crop_w)) + in_pixel
         adjusted = pos / c.camera.crop_size
         u_wl = sampler.next_1d() if ps.u_wl is None else ps.u_wl
         ray, ray_w = c.camera.sample_ray(c.time, u_wl, adjusted, sampler.next_2d())

@@ -22,7 +22,7 @@ from .light_path import LightTracer
 from .beams import BeamGather, BeamGrid
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
-                     count_passes, light_capacity, pass_sampler, plan_passes)
+                     count_passes, light_capacity, pass_sampler, pixel_sampler, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .jit_guard import held
 from .scene_check import check_scene, check_variant
@@ -348,7 +348,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         k = lattice_step(ctx)
         v0, n_cam = camera_lattice(ctx, pixel_start, pixel_count)
         n = spp_pass * n_cam
-        sampler = pass_sampler(ctx, spp_pass, seed, i if k == 1 else LATTICE_PASS + i, max(n, 1))
+        index = i if k == 1 else LATTICE_PASS + i
+        sampler = pass_sampler(ctx, spp_pass, seed, index, max(n, 1))
         u_wl, spectral = None, None
         if mi.is_spectral:
             # one set of wavelengths per sample, for its light and its camera subpath (Mitsuba's
@@ -375,6 +376,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             eta, radius = merge_terms(schedule, max(n, 1), ctx.media is not None)
         ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
+        ps.pixel_sampler = pixel_sampler(ctx, spp_pass, seed, index, max(n, 1))
         if k > 1:
             self.lattice_pass_state(ctx, ps, seed, i, k, n_light)
         if ctx.light_cache is not None:

@@ -108,12 +108,43 @@ def count_passes(spp, n_pixels, bytes_per_sample, samples_per_pass=None):
     return spp * -(-n_pixels // budget)
 
 
+_INDEPENDENT = {}      # per variant: an `independent` sampler to clone (pass_sampler)
+
+
 def pass_sampler(ctx, spp_pass, seed, index, n):
-    """A clone of the sensor's sampler for ``n`` lanes of ``spp_pass`` samples a pixel, seeded
-    with pass_seed(seed, index)."""
-    sampler = ctx.sensor.sampler().clone()
+    """The sampler of the subpaths of ``n`` lanes of ``spp_pass`` samples a pixel, seeded with
+    pass_seed(seed, index): a clone of the sensor's where that is `independent`, else of an
+    `independent` one. Mitsuba 3.9.1's `stratified`, `multijitter` and `ldsampler` correlate a
+    sample's dimensions with each other (at 4 spp a pixel, `stratified`'s first 1D and the next
+    2D sample's first coordinate: P(both < 1/4) 0.0005 where 1/16 is due; `ldsampler`'s 1D
+    values differ by multiples of 1 / sample_count at any count), which biases every estimator
+    drawing a path from them, Mitsuba's `path` included (docs/coverage.md). The sensor's sampler
+    places the pixel samples only (pixel_sampler)."""
+    scene_sampler = ctx.sensor.sampler()
+    if scene_sampler.class_name() == 'IndependentSampler':
+        sampler = scene_sampler.clone()
+    else:
+        if mi.variant() not in _INDEPENDENT:
+            _INDEPENDENT[mi.variant()] = mi.load_dict({'type': 'independent'})
+        sampler = _INDEPENDENT[mi.variant()].clone()
     sampler.set_sample_count(spp_pass)
     sampler.seed(pass_seed(seed, index), n)
+    return sampler
+
+
+def pixel_sampler(ctx, spp_pass, seed, index, n):
+    """The sensor's sampler for the positions in their pixels of ``n`` lanes of ``spp_pass``
+    consecutive samples a pixel (one 2D sample each: the stratification a Mitsuba user chose
+    it for, among each pixel's samples where its sample count allows), seeded as pass_sampler
+    with ``index``; None where the sensor's sampler is `independent` (pass_sampler's then)."""
+    sampler = ctx.sensor.sampler()
+    if sampler.class_name() == 'IndependentSampler':
+        return None
+    sampler = sampler.clone()
+    sampler.set_sample_count(spp_pass)
+    per_pixel = spp_pass if sampler.sample_count() % spp_pass == 0 else 1
+    sampler.set_samples_per_wavefront(per_pixel)    # (a clone keeps the last render's)
+    sampler.seed(pass_seed(seed, index) ^ 0x5F3759DF, n)
     return sampler
 
 
@@ -123,6 +154,7 @@ class PassState:
 
     def __init__(self, sampler, n, spp_pass, pixel_start, film, mis):
         self.sampler = sampler          # the pass's sampler, seeded for its n samples
+        self.pixel_sampler = None       # the sensor's sampler for the pixel positions (passes.pixel_sampler), or None
         self.n = n                      # samples in the pass (one camera and one light subpath each)
         self.spp_pass = spp_pass        # consecutive samples per pixel
         self.pixel_start = pixel_start  # the pass's first crop pixel (in units of pixel_stride)
