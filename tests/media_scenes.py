@@ -22,9 +22,7 @@ Conventions of Mitsuba 3.9.1 the scenes rely on (each checked in tests/test_medi
   (z, y, x, channels) float32; the grid fills the unit cube, placed by its ``to_world``.
 """
 
-import hashlib
 import math
-import os
 
 import mitsuba as mi
 import numpy as np
@@ -34,19 +32,6 @@ from stability_cases import T, diffuse, rgb, sensor
 
 REF_SEED = 10_000           # first seed of the references' batches (as test_agreement.py)
 FLOAT_FLOOR = 1e-5          # helpers.agreement's relative resolution here: float32 rounding is no bias
-
-
-def _source_hash():
-    """A hash of this file and stability_cases.py (which the builders use): part of every cached
-    reference's key, so that a changed scene is rendered afresh."""
-    h = hashlib.sha1()
-    for path in (os.path.abspath(__file__), os.path.abspath(stability_cases.__file__)):
-        with open(path, 'rb') as f:
-            h.update(f.read())
-    return h.hexdigest()[:12]
-
-
-SOURCE_HASH = _source_hash()
 
 
 # ------------------------------------------------------------------------------- pieces
@@ -543,11 +528,13 @@ def media_reference(name, max_depth, which='volpath', spp=256, batches=16, seed0
     """Reference batches (K, H, W, 3) of Mitsuba's ``which`` ('volpath' or 'volpathmis') at
     ``max_depth`` on the scene ``BUILDERS[name](**params)``, ``batches`` batches of ``spp``
     samples from seed ``seed0``, cached under tests/.refcache (helpers.reference) by the scene's
-    name and parameters, the source of the builders (SOURCE_HASH), the variant, the integrator
-    and its ``integrator_params`` (e.g. ``{'rr_depth': 10000}``), spp, batches and seeds."""
+    name and parameters, the variant, the integrator and its ``integrator_params`` (e.g.
+    ``{'rr_depth': 10000}``), spp, batches and seeds, and by the loaded scene's digest
+    (helpers.scene_fingerprint: its description and every parameter's value, grids included),
+    so that an edit of this file elsewhere leaves the stored references in use."""
     from helpers import reference
     params = dict(params or {})
-    key = ('media_scenes', SOURCE_HASH, name, tuple(sorted(params.items())), mi.variant())
+    key = ('media_scenes', name, tuple(sorted(params.items())), mi.variant())
     integ = {'type': which, 'max_depth': max_depth, **(integrator_params or {})}
     return reference(key, lambda: load(name, **params), integ, spp, batches, seed0)
 
