@@ -46,6 +46,16 @@ class CameraModel:
     def sample_ray(self, time, u_wavelength, film_sample, aperture_sample):
         return self.sensor.sample_ray(time, u_wavelength, film_sample, aperture_sample)
 
+    def near_point(self, ds):
+        """The end of a t=1 connection towards the camera's point ``ds.p`` (``ds.d``: the unit
+        direction towards it): the point itself, where camera rays start there."""
+        return ds.p
+
+    def between_clip_planes(self, ds):
+        """Whether the point a sensor.sample_direction ``ds`` was drawn for lies where camera
+        rays reach (all of them, but for cameras with clip planes)."""
+        return True
+
     def first_edge_dist2(self, ray, p):
         """Squared length of the first edge, from the lens point to the first vertex ``p``."""
         return dr.squared_norm(p - self.lens_point(ray))
@@ -71,6 +81,7 @@ class Perspective(CameraModel):
         axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
         self.axis = mi.Vector3f(*[float(x) for x in axis])
         self.near_clip = float(sensor.near_clip())
+        self.far_clip = float(sensor.far_clip())
         # the pinhole (sample_ray's origins lie on the near-clip plane instead)
         self.position = mi.Point3f(*[float(x) for x in m[:3, 3]])
 
@@ -84,6 +95,24 @@ class Perspective(CameraModel):
         ray from the pinhole."""
         c = dr.dot(ray.d, self.axis)
         return ray.o - ray.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))
+
+    def near_point(self, ds):
+        """Where the segment from a point to the lens point ``ds.p`` crosses the near-clip
+        plane. Camera rays start there, so nothing nearer the lens is seen (a scene may place
+        its camera behind a wall and clip the wall away), and t=1 connections end there: ended
+        at the lens, such a wall hid every light vertex from the camera (technique lt black,
+        bdpt 74% dark: test_lights.py::test_near_clip_beyond_a_wall)."""
+        c = -dr.dot(ds.d, self.axis)
+        return ds.p - ds.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))
+
+    def between_clip_planes(self, ds):
+        """Whether the point ``ds`` was drawn for lies between the clip planes (its depth along
+        the axis from the lens point ``ds.p``). Mitsuba 3.9.1's `thinlens` computes this in its
+        sample_direction and leaves it out of the result in the JIT variants (its `perspective`
+        applies it): without this, lt with a thin lens splatted points the camera rays clip
+        away (1% bright where near_clip cut the edges of the Cornell box's walls)."""
+        z = -dr.dot(ds.d, self.axis) * ds.dist
+        return (z >= self.near_clip) & (z <= self.far_clip)
 
 
 class ThinLens(Perspective):

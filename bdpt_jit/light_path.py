@@ -87,14 +87,14 @@ class LightTracer:
         c = self.ctx
         si_e, ps = e.si_e, e.ps
         ds, sensor_w = c.sensor.sample_direction(si_e, u, active)
-        ok = active & (ds.pdf > 0)
+        ok = active & (ds.pdf > 0) & c.camera.between_clip_planes(ds)
         cos_g = dr.dot(ps.n, ds.d)                            # emitter normal towards camera
         si_to_cam = mi.SurfaceInteraction3f(si_e)
         si_to_cam.wi = si_e.to_local(ds.d)
         le = e.emitter.eval(si_to_cam, ok)
         ok &= (cos_g > 0) & (dr.max(le) > 0)
-        ray = spawn_to((ps.p, ps.n, e.err), (ds.p, mi.Normal3f(0.0), 0.0), ps.time, c.offsets.far_rel,
-                       si_e.wavelengths)
+        ray = spawn_to((ps.p, ps.n, e.err), (c.camera.near_point(ds), mi.Normal3f(0.0), 0.0), ps.time,
+                       c.offsets.far_rel, si_e.wavelengths)
         et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.p, ps.n, ds.d, ok), None, ok) \
             if c.media is not None else None
         tr = visibility(c, t1_shadow_ray(c, ray, ds, (ps.p, ps.n, e.err), si_e), ok) if et is None else et.tr
@@ -125,14 +125,14 @@ class LightTracer:
         c = self.ctx
         si = v.si
         ds, sensor_w = c.sensor.sample_direction(si, self.sampler.next_2d(), active)
-        ok = active & (ds.pdf > 0)
+        ok = active & (ds.pdf > 0) & c.camera.between_clip_planes(ds)
         if c.fuse_draw and not c.exact_adjoint:     # with the scatter's BSDF sample
             f, _, valid = v.eval_and_draw(c, ds.d, IMPORTANCE, self.sampler, scatters | ok)
             pdf_rev_w = v.pdf_rev_w(c, ds.d, IMPORTANCE, ok & valid)
         else:
             f, _, pdf_rev_w, valid = v.eval(c, ds.d, IMPORTANCE, ok)
         ok &= valid & (dr.max(f) > 0)
-        ray = v.spawn_to(c, ds.p, mi.Normal3f(0.0), 0.0)
+        ray = v.spawn_to(c, c.camera.near_point(ds), mi.Normal3f(0.0), 0.0)
         et = self.camera_edge(ray, ds, v.medium_towards(ds.d), v, ok) if c.media is not None else None
         tr = visibility(c, t1_shadow_ray(c, ray, ds, (si.p, si.n, v.err), si), ok) if et is None else et.tr
         ok &= visible(tr)
@@ -157,7 +157,8 @@ class LightTracer:
         n = dr.width(ds.p)
         near = v.density_factor(c.media.info) if v is not None else media_path.surface_start(n)
         media = (medium, medium_at_sensor(c.sensor, n))
-        return media_path.edge_terms(c, self.sampler, ray, (ds.p, mi.Normal3f(0.0), mi.Float(0.0)), media,
+        end = (c.camera.near_point(ds), mi.Normal3f(0.0), mi.Float(0.0))
+        return media_path.edge_terms(c, self.sampler, ray, end, media,
                                      (near, media_path.surface_start(n)), active)
 
     # ------------------------------------------------------------------ walk
@@ -228,4 +229,5 @@ def t1_shadow_ray(ctx, ray, ds, end, si):
     a quadric inside an instance was hidden by its own surface (-0.5%)."""
     if not ctx.offsets.one_sided:
         return ray
-    return spawn_to((ds.p, mi.Normal3f(0.0), 0.0), end, si.time, ctx.offsets.far_rel, si.wavelengths)
+    return spawn_to((ctx.camera.near_point(ds), mi.Normal3f(0.0), 0.0), end, si.time, ctx.offsets.far_rel,
+                    si.wavelengths)

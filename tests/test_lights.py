@@ -167,6 +167,35 @@ def test_thinlens_cornell_box(max_depth, technique, mis):
     assert ok, f'{technique}/{mis} max_depth={max_depth}: {msg}'
 
 
+def box_behind_a_wall(camera):
+    """The Cornell box closed by a front wall at z = +1 facing in, seen from outside (z = 3.9)
+    through it: near_clip 2.95 clips the wall away (2.9 from the camera on its axis, further
+    off it), as scenes clip a room's wall to look in."""
+    d = cornell(16, closed=True, camera={'type': camera, 'fov': 39.3, 'near_clip': 2.95,
+                                         'aperture_radius': 0.1, 'focus_distance': 3.9})
+    if camera == 'perspective':
+        d['sensor'].pop('aperture_radius'), d['sensor'].pop('focus_distance')
+    d['sensor']['to_world'] = mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0])
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('camera', ['perspective', 'thinlens'])
+@pytest.mark.parametrize('technique', ['lt', 'bdpt'])
+def test_near_clip_beyond_a_wall(camera, technique):
+    """Camera rays start on the near-clip plane, so t=1 connections end there
+    (cameras.Perspective.near_point): ended at the lens point, the wall hid every light vertex
+    (lt black, bdpt 74% dark); ended near_clip (not near_clip / cos) from it, the pixels more
+    than 10 degrees off the axis would still be behind the wall. Splats of points the clip
+    planes cut away are left out (cameras.Perspective.between_clip_planes; Mitsuba's thinlens
+    does not: lt 1.1% bright with it, where the clip cuts the edges of the side walls)."""
+    ref = reference(('box-behind-a-wall', camera), lambda: box_behind_a_wall(camera),
+                    {'type': 'path', 'max_depth': 3}, 1024, BATCHES, 50_000)
+    mine = render_batches(box_behind_a_wall(camera), {'type': 'bdpt', 'max_depth': 3, 'technique': technique},
+                          64, BATCHES)
+    ok, msg = agreement(mine, ref)
+    assert ok, f'{camera} {technique}: {msg}'
+
+
 def test_hide_emitters_with_an_environment():
     """hide_emitters hides the directly seen environment as Mitsuba's `path` does (and the
     directly seen area light), while everything the environment lights stays."""
