@@ -308,18 +308,22 @@ def normal_map_texture(n=32, seed=3):
 
 
 def normal_map_file():
-    """``normal_map_texture`` written once to an EXR in the temporary directory (a file name
-    keeps scene dicts reusable: a tensor in a dict is consumed by the first load), removed when
-    the process exits."""
-    import atexit
+    """``normal_map_texture`` written to an EXR in the temporary directory (a file name keeps
+    scene dicts reusable: a tensor in a dict is consumed by the first load), named by its
+    content: the name enters the scene's description and so its reference's key
+    (helpers.scene_fingerprint), which a per-process name changed in every run (a cold CI run
+    rendered the reference of test_light_tracing_covers_the_exact_adjoint_of_normal_maps
+    again). Written atomically once and left there, so no worker removes it under another."""
+    import hashlib
     import os
     import tempfile
-    path = os.path.join(tempfile.gettempdir(), f'bdpt_stability_normalmap_{os.getpid()}.exr')
+    data = normal_map_texture()
+    digest = hashlib.sha1(data.tobytes()).hexdigest()[:12]
+    path = os.path.join(tempfile.gettempdir(), f'bdpt_stability_normalmap_{digest}.exr')
     if not os.path.exists(path):
-        tmp = path + '.tmp.exr'
-        mi.Bitmap(normal_map_texture()).write(tmp)
+        tmp = path + f'.{os.getpid()}.tmp.exr'
+        mi.Bitmap(data).write(tmp)
         os.replace(tmp, path)
-        atexit.register(lambda: os.path.exists(path) and os.remove(path))
     return path
 
 
