@@ -58,11 +58,21 @@ def register():
     global _loaded_variant
     if mi.variant() is None:
         set_variant_quietly('llvm_ad_rgb')
+    if not mi.variant().startswith(('llvm_', 'cuda_')):
+        # the kernels need a JIT variant; a scene asking for bdpt in a scalar one gets the
+        # reason (scene_check.check_variant), not Mitsuba's "plugin not found"
+        mi.register_integrator('bdpt', _refuse_variant)
+        return
     if _loaded_variant is not None and mi.variant() != _loaded_variant:
         _reload_kernels()
     _loaded_variant = mi.variant()
     from .integrator import BDPTIntegrator
     mi.register_integrator('bdpt', lambda props: BDPTIntegrator(props))
+
+
+def _refuse_variant(props):
+    from .scene_check import check_variant
+    check_variant()
 
 
 def set_variant_quietly(variant):

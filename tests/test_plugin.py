@@ -89,6 +89,19 @@ def test_other_variants_are_refused():
         mi.set_variant('llvm_ad_rgb')
 
 
+def test_a_scalar_variant_names_itself_when_a_scene_asks_for_bdpt():
+    """In a scalar variant (set before ``import bdpt_jit``, or switched to and registered) a
+    scene with ``bdpt`` is refused with the reason, not with Mitsuba's "plugin not found" (the
+    kernel modules cannot be imported there)."""
+    import subprocess
+    import sys
+    code = ("import mitsuba as mi; mi.set_variant('scalar_rgb'); import bdpt_jit\n"
+            "try:\n    mi.load_dict({'type': 'bdpt'})\nexcept Exception as e:\n    print(e)\n")
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120).stdout
+    assert "variant 'scalar_rgb' is not supported; use one of llvm_ad_rgb" in out, out
+    assert 'not found' not in out, out
+
+
 def test_readme_parameter_table_is_the_source_table():
     """The README shows the parameter table that params.py defines (one source of truth)."""
     import os
