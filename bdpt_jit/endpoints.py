@@ -31,8 +31,9 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
-from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_radiance,  # noqa: F401
-                             sphere_table, spot_cones)     # (projector_cone: re-exported)
+from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_centres,  # noqa: F401
+                             sphere_normals, sphere_radiance, sphere_table,
+                             spot_cones)     # (projector_cone: re-exported)
 
 
 def _or(a, b):
@@ -130,9 +131,15 @@ class EmitterTable(DirectSampling):
         self.sph_le = sphere_radiance(emitters, ids, size) if self.has_sphere else None
         self.all_spheres = self.sph_le is not None
         self.inv_area = inverse_areas(emitters, ids, size)
+        self.sphere_centres = sphere_centres(emitters, ids, size)
 
     def kinds(self, emitter):
         return Kinds(self, emitter)
+
+    def sample_position(self, emitter, time, u, active):
+        """The emitter's ``sample_position``, its normal corrected on spheres (sphere_normals)."""
+        ps, w = emitter.sample_position(time, u, active)
+        return sphere_normals(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_centres, active), w
 
     def pdf_select(self, emitter):
         """Probability of choosing ``emitter`` (an EmitterPtr)."""
@@ -195,7 +202,7 @@ class EmitterTable(DirectSampling):
         e.p_sel = p_sel
         finite = neg(k.infinite)
         # ---- position (area, point, spot)
-        ps, _ = emitter.sample_position(time, u_pos, active & finite)
+        ps, _ = self.sample_position(emitter, time, u_pos, active & finite)
         e.ps = ps
         si_e = mi.SurfaceInteraction3f(ps, wl)
         e.si_e = si_e

@@ -290,7 +290,7 @@ class ADSampling(Sampling):
         with dr.suspend_grad():
             e = super().sample_emission(u_sel, u_pos, u_dir, active, wavelengths)
         if e.kinds.area is not False:
-            ps, _ = e.emitter.sample_position(c.time, u_pos, e.active & e.kinds.area)
+            ps, _ = c.emitters.sample_position(e.emitter, c.time, u_pos, e.active & e.kinds.area)
             e.y0_p = sel(e.kinds.area, ps.p, e.origin)
             e.y0_n = sel(e.kinds.area, ps.n, e.n_e)
         else:
