@@ -291,6 +291,23 @@ def test_textured_emitter_refused_on_meshes_and_cylinders(shape):
         check_scene(scene, scene.sensors()[0])
 
 
+def test_textured_emitter_refused_on_a_rotated_sphere():
+    """Mitsuba 3.9.1's sphere finds the point of a uv along the unrotated direction: a textured
+    sphere light whose to_world rotates it is refused (bdpt and lt were 1% bright under one
+    rotated by 110 degrees, against path); translated and scaled it renders
+    (test_textured_area_light)."""
+    d = textured_box('checker', 'sphere')
+    d['lamp'] = {**d['lamp'], 'to_world': T().translate([0.2, 0.3, -0.2]).rotate([0.6, 0.0, 0.8], 110).scale(0.25)}
+    del d['lamp']['center'], d['lamp']['radius']
+    scene = mi.load_dict(d)
+    with pytest.raises(UnsupportedSceneError, match="textured radiance on the rotated sphere"):
+        check_scene(scene, scene.sensors()[0])
+    del d['lamp']['to_world']
+    d['lamp'].update(center=[0.2, 0.3, -0.2], radius=0.25)
+    scene = mi.load_dict(d)
+    check_scene(scene, scene.sensors()[0])
+
+
 # ---------------------------------------------------------------------------- null lobes
 def leaf_over_floor(opacity, light='point', material=0.0):
     """A floor lit by a light above a leaf: a rectangle whose BSDF is a ``mask`` of ``opacity``
