@@ -59,7 +59,9 @@ def pass_seed(seed, i):
     s = mi.UInt32(seed)
     if dr.width(s) != 1:
         raise ValueError(f"bdpt: the seed must be one integer, got an array of {dr.width(s)}")
-    out = s * 1000003 + i * 7919                     # 32-bit wrap-around, as the int form
+    # 32-bit wrap-around, as the int form (i * 7919 reduced first: the pilot's and the lattice's
+    # pass indices make it exceed 32 bits, which a UInt32 cannot take)
+    out = s * 1000003 + ((int(i) * 7919) & 0xFFFFFFFF)
     dr.make_opaque(out)
     return out
 

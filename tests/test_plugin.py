@@ -126,6 +126,19 @@ def test_seed_as_uint32_renders_the_int_seed():
     assert np.max(np.abs(a - c)) > 1e-3 * np.max(a)
 
 
+def test_pass_seeds_of_a_uint32_seed_are_the_int_seed_s():
+    """passes.pass_seed takes a UInt32 seed as Mitsuba's wrappers pass it, for every pass index
+    bdpt uses: technique auto's pilot and lattice passes (light_cache.PILOT_PASS,
+    integrator.LATTICE_PASS) have indices past 2^24, whose term overflowed 32 bits and made a
+    UInt32-seeded auto render fail."""
+    from bdpt_jit.integrator import LATTICE_PASS
+    from bdpt_jit.light_cache import PILOT_PASS
+    from bdpt_jit.passes import pass_seed, pass_seed_value
+    for seed in (0, 1, 12345, 2**32 - 1):
+        for i in (0, 7, PILOT_PASS, PILOT_PASS + 9, LATTICE_PASS + 3):
+            assert int(pass_seed(mi.UInt32(seed), i)[0]) == pass_seed_value(seed, i), (seed, i)
+
+
 def test_render_without_develop_is_refused_with_a_reason():
     scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
     integ = mi.load_dict({'type': 'bdpt'})
