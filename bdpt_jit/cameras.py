@@ -90,11 +90,16 @@ class Perspective(CameraModel):
         c = dr.dot(d, self.axis)
         return dr.select(c > 0, self.inv_area * dr.rcp(dr.select(c > 0, c * c * c, 1.0)), 0.0)
 
+    def to_near_plane(self, d):
+        """The distance from the lens along the unit direction ``d`` leaving it to the near-clip
+        plane: near_clip / cos(theta)."""
+        c = dr.dot(d, self.axis)
+        return self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0))
+
     def lens_point(self, ray):
         """Mitsuba starts camera rays on the near-clip plane, near_clip / cos(theta) along the
         ray from the pinhole."""
-        c = dr.dot(ray.d, self.axis)
-        return ray.o - ray.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))
+        return ray.o - ray.d * self.to_near_plane(ray.d)
 
     def near_point(self, ds):
         """Where the segment from a point to the lens point ``ds.p`` crosses the near-clip
@@ -102,8 +107,7 @@ class Perspective(CameraModel):
         its camera behind a wall and clip the wall away), and t=1 connections end there: ended
         at the lens, such a wall hid every light vertex from the camera (technique lt black,
         bdpt 74% dark: test_lights.py::test_near_clip_beyond_a_wall)."""
-        c = -dr.dot(ds.d, self.axis)
-        return ds.p - ds.d * (self.near_clip * dr.rcp(dr.select(c > 0, c, 1.0)))
+        return ds.p - ds.d * self.to_near_plane(-ds.d)
 
     def between_clip_planes(self, ds):
         """Whether the point ``ds`` was drawn for lies between the clip planes (its depth along

@@ -100,7 +100,7 @@ class Context:
         self.scene, self.sensor = scene, sensor
         self.camera = camera_for(sensor)
         self.offsets = RayOffsets(scene)
-        # lt and vm: light subpaths alone carry their paths (endpoints._start_env_defensive)
+        # lt and vm: light subpaths alone carry their paths (endpoints.EmitterTable._env_direction)
         self.emitters = EmitterTable(scene, self.offsets, env_defensive=settings['technique'] in ('lt', 'vm'))
         self.unbounded = settings['max_depth'] < 0
         self.max_depth_edges = UNBOUNDED if self.unbounded else settings['max_depth']

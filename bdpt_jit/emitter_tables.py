@@ -54,15 +54,20 @@ def cone_sphere(emitter) -> bool:
             and not mi.has_flag(emitter.flags(), mi.EmitterFlags.SpatiallyVarying) and not shape.has_flipped_normals())
 
 
+def _sphere_placement(shape):
+    """(centre, radius) of a ``sphere`` shape, from its to_world (Mitsuba folds centre and
+    radius into it)."""
+    m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
+    return [float(x) for x in m[:3, 3]], float(np.linalg.norm(m[:3, 0]))
+
+
 def sphere_table(emitters, ids, size):
     """(radius, centre) per emitter id of the ``cone_sphere`` emitters, whose emitter sampling from
     points that see them small is done by bdpt (direct.py); radius 0 for every other emitter."""
     sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
     for e, i in zip(emitters, ids):
         if cone_sphere(e):
-            m = np.array(mi.traverse(e.get_shape())['to_world'].matrix, dtype=np.float64).reshape(4, 4)
-            sph_r[i] = float(np.linalg.norm(m[:3, 0]))
-            sph_c[i] = [float(x) for x in m[:3, 3]]
+            sph_c[i], sph_r[i] = _sphere_placement(e.get_shape())
     return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
 
 
@@ -73,9 +78,8 @@ def sphere_centres(emitters, ids, size):
     for e, i in zip(emitters, ids):
         shape = e.get_shape()
         if shape is not None and shape.class_name() == 'Sphere':
-            m = np.array(mi.traverse(shape)['to_world'].matrix, dtype=np.float64).reshape(4, 4)
             sign[i] = -1.0 if shape.has_flipped_normals() else 1.0
-            centre[i] = [float(x) for x in m[:3, 3]]
+            centre[i], _ = _sphere_placement(shape)
     if not any(sign):
         return None
     return mi.Float(sign), mi.Point3f([v[0] for v in centre], [v[1] for v in centre], [v[2] for v in centre])
@@ -91,7 +95,9 @@ def sphere_normals(ps, index, centres, active=True):
         return ps
     sign = dr.gather(mi.Float, centres[0], index, active)
     centre = dr.gather(mi.Point3f, centres[1], index, active)
-    ps.n = dr.select(sign != 0, dr.normalize(ps.p - centre) * sign, ps.n)
+    radial = ps.p - centre
+    ok = (sign != 0) & (dr.squared_norm(radial) > 0)      # (a sphere of radius 0: Mitsuba's normal)
+    ps.n = dr.select(ok, radial * (sign * dr.rsqrt(dr.select(ok, dr.squared_norm(radial), 1.0))), ps.n)
     return ps
 
 

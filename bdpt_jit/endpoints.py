@@ -95,7 +95,7 @@ class EmitterTable(DirectSampling):
 
     def __init__(self, scene: mi.Scene, offsets: RayOffsets = None, env_defensive=False):
         self.scene = scene
-        # light subpaths leave environment emitters in uniform directions too (_start_infinite)
+        # light subpaths leave environment emitters in uniform directions too (_env_direction)
         self.env_defensive = env_defensive
         self.offsets = offsets if offsets is not None else RayOffsets(scene)
         emitters = scene.emitters()
@@ -264,51 +264,45 @@ class EmitterTable(DirectSampling):
         st.n_e = sel(kind, d_cone, st.n_e)
 
     def _start_infinite(self, emitter, kind, st, time, u_pos, u_dir, active):
-        """Infinite emitters: a direction from the emitter, an origin on the disk of the scene's
-        bounding sphere facing it."""
+        """Infinite emitters: a direction from the emitter (_env_direction where env_defensive),
+        an origin on the disk of the scene's bounding sphere facing it."""
         it = dr.zeros(mi.Interaction3f)
         it.p = self.center
         it.time, it.wavelengths = time, st.wl
         if self.env_defensive:
-            self._start_env_defensive(emitter, kind, st, it, u_pos, u_dir, active)
-            return
-        ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & kind)
-        to_light = ds_inf.d                                  # from the scene towards the emitter
+            to_light, value, p_dir = self._env_direction(emitter, kind, it, u_dir, active)
+        else:
+            ds_inf, w_inf = emitter.sample_direction(it, u_dir, active & kind)
+            to_light, value, p_dir = ds_inf.d, w_inf * ds_inf.pdf, ds_inf.pdf   # (to_light: towards the emitter)
         disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
         o_inf = self.center + to_light * self.radius + mi.Frame3f(to_light).to_world(mi.Vector3f(disk.x, disk.y, 0))
-        st.value = sel(kind, w_inf * ds_inf.pdf, st.value)              # radiance (irradiance if delta)
+        st.value = sel(kind, value, st.value)              # radiance (irradiance if delta)
         st.p_pos = sel(kind, mi.Float(self.pdf_disk), st.p_pos)
-        st.p_dir = sel(kind, ds_inf.pdf, st.p_dir)                       # 1 for directional
+        st.p_dir = sel(kind, p_dir, st.p_dir)              # 1 for directional
         st.d = sel(kind, -to_light, st.d)
         st.origin = sel(kind, o_inf, st.origin)
         st.n_e = sel(kind, -to_light, st.n_e)
 
-    def _start_env_defensive(self, emitter, kind, st, it, u_pos, u_dir, active):
-        """_start_infinite where light subpaths alone render what they carry (techniques lt and
-        vm: no MIS weight reads their densities): environment emitters leave in a uniform
-        direction with probability ENV_DEFENSIVE, else in the emitter's own (the mixture's
-        density is the direction density). Mitsuba's `envmap` with `mis_compensation` samples
-        no direction darker than its mean: lt was 6.3% dark on a plane under one (ptracer 6.1%),
-        vm 6.9%. Directional emitters (a delta direction) are sampled as they are."""
+    def _env_direction(self, emitter, kind, it, u_dir, active):
+        """The direction towards an infinite emitter where light subpaths alone render what they
+        carry (techniques lt and vm: no MIS weight reads their densities): environment emitters
+        give a uniform direction with probability ENV_DEFENSIVE, else one of their own, the
+        mixture's density the direction density. Mitsuba's `envmap` with `mis_compensation`
+        samples no direction darker than its mean: lt was 6.3% dark on a plane under one
+        (ptracer 6.1%), vm 6.9%. Directional emitters (a delta direction) are sampled as they
+        are. Returns (direction, emitted value, direction density)."""
         env = kind & self.kinds(emitter).env
         uniform = env & (u_dir.x < ENV_DEFENSIVE)
         u_x = dr.select(uniform, u_dir.x / ENV_DEFENSIVE, (u_dir.x - ENV_DEFENSIVE) / (1.0 - ENV_DEFENSIVE))
         u_own = mi.Point2f(dr.select(env, u_x, u_dir.x), u_dir.y)
         ds, w = emitter.sample_direction(it, u_own, active & kind)
-        ds.d = dr.select(uniform, mi.warp.square_to_uniform_sphere(u_own), ds.d)     # towards the emitter
+        ds.d = dr.select(uniform, mi.warp.square_to_uniform_sphere(u_own), ds.d)
         pdf_own = emitter.pdf_direction(it, ds, active & env)
         si = dr.zeros(mi.SurfaceInteraction3f)       # (eval: Mitsuba's eval_direction reads ds.uv)
         si.wi, si.time, si.wavelengths = -ds.d, it.time, it.wavelengths
         le = emitter.eval(si, active & env)
-        p_dir = dr.select(env, (1.0 - ENV_DEFENSIVE) * pdf_own + ENV_DEFENSIVE / (4.0 * dr.pi), ds.pdf)
-        disk = mi.warp.square_to_uniform_disk_concentric(u_pos) * self.radius
-        o_inf = self.center + ds.d * self.radius + mi.Frame3f(ds.d).to_world(mi.Vector3f(disk.x, disk.y, 0))
-        st.value = sel(kind, dr.select(env, le, w * ds.pdf), st.value)
-        st.p_pos = sel(kind, mi.Float(self.pdf_disk), st.p_pos)
-        st.p_dir = sel(kind, p_dir, st.p_dir)
-        st.d = sel(kind, -ds.d, st.d)
-        st.origin = sel(kind, o_inf, st.origin)
-        st.n_e = sel(kind, -ds.d, st.n_e)
+        p_dir = (1.0 - ENV_DEFENSIVE) * pdf_own + ENV_DEFENSIVE * mi.warp.square_to_uniform_sphere_pdf(ds.d)
+        return ds.d, dr.select(env, le, w * ds.pdf), dr.select(env, p_dir, ds.pdf)
 
     def pdf_direct_first_hit(self, e, si1, active):
         """Density of emitter sampling choosing y0 when seen from the first hit y1: per unit

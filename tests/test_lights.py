@@ -202,6 +202,26 @@ def test_near_clip_beyond_a_wall(camera, technique):
     assert ok, f'{camera} {technique}: {msg}'
 
 
+def box_past_the_far_plane(camera):
+    """The Cornell box seen from z = 3.9 with far_clip 4.5: its back wall (4.9 away on the
+    axis) and the back of its floor, ceiling and side walls lie beyond the far-clip plane."""
+    d = cornell(16, camera={'type': camera, 'fov': 39.3, 'far_clip': 4.5, 'aperture_radius': 0.1,
+                            'focus_distance': 3.9})
+    if camera == 'perspective':
+        d['sensor'].pop('aperture_radius'), d['sensor'].pop('focus_distance')
+    d['sensor']['to_world'] = mi.ScalarTransform4f().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0])
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('camera', ['perspective', 'thinlens'])
+def test_far_clip_cuts_light_tracing_s_splats(camera):
+    """Splats of points beyond the far-clip plane are left out (between_clip_planes: Mitsuba
+    3.9.1's thinlens computes the test and drops it); lt against path, which sees nothing there."""
+    ok, msg = against_path(('box-past-the-far-plane', camera), lambda: box_past_the_far_plane(camera), 3, 'lt',
+                           64, 55_000)
+    assert ok, f'{camera}: {msg}'
+
+
 def plane_under_a_compensated_envmap():
     """A plane and a rough plastic ball under an `envmap` with `mis_compensation` (a sun-like
     spot and a sky varying along the azimuth), seen from above."""
@@ -222,7 +242,7 @@ def plane_under_a_compensated_envmap():
 def test_light_tracing_under_an_envmap_with_mis_compensation():
     """Mitsuba's envmap with mis_compensation samples no direction darker than its mean, so
     light subpaths must leave it in uniform directions too where nothing else renders their
-    paths (technique lt; endpoints.EmitterTable._start_env_defensive): lt was 6.3% dark here
+    paths (technique lt; endpoints.EmitterTable._env_direction): lt was 6.3% dark here
     (ptracer is 6.1%), p 6e-12 per pixel. Where the environment is seen directly lt renders
     nothing (no_delta_mask leaves those pixels out)."""
     ok, msg = against_path(('compensated-envmap', 16), plane_under_a_compensated_envmap, 4, 'lt', 256, 60_000,
