@@ -308,6 +308,23 @@ def test_textured_emitter_refused_on_a_rotated_sphere():
     check_scene(scene, scene.sensors()[0])
 
 
+def test_a_film_sampling_its_border_is_refused_where_the_border_is_not_empty():
+    """With sample_border, Mitsuba's path traces camera rays through a border around the crop
+    (the filter's radius), so an edge pixel averages its whole footprint; bdpt's light image cannot
+    splat there (bdpt and lt were 1.5% bright over a 16 x 16 Cornell box with the Gaussian filter).
+    Refused naming the parameter and filter; a box filter's border is empty and renders."""
+    d = cornell(8)
+    for rfilter, refused in (('gaussian', True), ('tent', True), ('box', False)):
+        d['sensor']['film'] = {'type': 'hdrfilm', 'width': 8, 'height': 8, 'sample_border': True,
+                               'rfilter': {'type': rfilter}}
+        scene = mi.load_dict(d)
+        if refused:
+            with pytest.raises(UnsupportedSceneError, match=f"'sample_border' is true with the reconstruction filter '{rfilter}'"):
+                check_scene(scene, scene.sensors()[0])
+        else:
+            check_scene(scene, scene.sensors()[0])
+
+
 # ---------------------------------------------------------------------------- null lobes
 def leaf_over_floor(opacity, light='point', material=0.0):
     """A floor lit by a light above a leaf: a rectangle whose BSDF is a ``mask`` of ``opacity``
