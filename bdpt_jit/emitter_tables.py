@@ -71,33 +71,49 @@ def sphere_table(emitters, ids, size):
     return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
 
 
-def sphere_centres(emitters, ids, size):
-    """(sign, centre) per emitter id of every sphere area emitter, for sphere_normals; sign 0
-    for every other emitter, +1 or -1 (flipped normals) for a sphere. None if there is none."""
-    sign, centre = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
+def sphere_placements(emitters, ids, size):
+    """(sign, centre, radius) per emitter id of every sphere area emitter, for sphere_positions;
+    sign 0 for every other emitter, +1 or -1 (flipped normals) for a sphere. None if there is
+    none."""
+    sign, centre, radius = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)], [0.0] * size
     for e, i in zip(emitters, ids):
         shape = e.get_shape()
         if shape is not None and shape.class_name() == 'Sphere':
             sign[i] = -1.0 if shape.has_flipped_normals() else 1.0
-            centre[i], _ = _sphere_placement(shape)
+            centre[i], radius[i] = _sphere_placement(shape)
     if not any(sign):
         return None
-    return mi.Float(sign), mi.Point3f([v[0] for v in centre], [v[1] for v in centre], [v[2] for v in centre])
+    return (mi.Float(sign), mi.Point3f([v[0] for v in centre], [v[1] for v in centre], [v[2] for v in centre]),
+            mi.Float(radius))
 
 
-def sphere_normals(ps, index, centres, active=True):
-    """``ps`` (a PositionSample3f of the emitters with registry ids ``index``) with the normals
-    of sphere emitters recomputed from their centres (sphere_centres). Mitsuba 3.9.1's sphere
-    ``sample_position`` returns the normal in the sphere's own frame, not rotated into the
-    world (src/shapes/sphere.cpp): under a rotated sphere light the light subpaths left it in
-    directions around another normal (lt 29% dark, bdpt 24%; its ``ptracer`` alike)."""
-    if centres is None:
+def sphere_positions(ps, index, placements, active=True):
+    """``ps`` (a PositionSample3f of the emitters with registry ids ``index``) with the points
+    of sphere emitters put on the sphere that rays hit. Mitsuba 3.9.1's sphere
+    ``sample_position`` draws a uniform unit direction ``local`` and returns the point
+    ``to_world * local`` with the normal ``local`` (src/shapes/sphere.cpp), while its rays hit
+    the sphere of centre ``to_world * 0`` and radius ``|to_world * x|``. Under a rotation the
+    normal was not the point's (lt 29% dark, bdpt 24% under a rotated bulb; its ``ptracer``
+    alike); under a transform that is not a rotation times a uniform scale (a rotation about an
+    axis that is not a unit vector: Mitsuba's ``rotate`` does not normalise it) the points lay
+    off that sphere, half of them inside it, where the light subpath's first ray met the sphere
+    itself (lt 76% dark, bdpt 62%). The point is now centre + radius * local, the normal
+    ``local`` (Mitsuba's, with its sign): uniform over the sphere the rays hit, at Mitsuba's
+    density 1 / (4 pi radius^2). Where ``to_world`` is a rotation it is another point than
+    Mitsuba's, of the same density; the uv stays Mitsuba's (textured spheres must not be
+    rotated: scene_check). A differentiated ``to_world`` keeps the derivative of Mitsuba's
+    point."""
+    if placements is None:
         return ps
-    sign = dr.gather(mi.Float, centres[0], index, active)
-    centre = dr.gather(mi.Point3f, centres[1], index, active)
-    radial = ps.p - centre
-    ok = (sign != 0) & (dr.squared_norm(radial) > 0)      # (a sphere of radius 0: Mitsuba's normal)
-    ps.n = dr.select(ok, radial * (sign * dr.rsqrt(dr.select(ok, dr.squared_norm(radial), 1.0))), ps.n)
+    sign = dr.gather(mi.Float, placements[0], index, active)
+    centre = dr.gather(mi.Point3f, placements[1], index, active)
+    radius = dr.gather(mi.Float, placements[2], index, active)
+    ok = sign != 0
+    local = mi.Vector3f(ps.n) * sign                      # Mitsuba's normal: local, negated if flipped
+    p = dr.fma(local, radius, centre)
+    if dr.grad_enabled(ps.p):       # (a differentiated to_world: Mitsuba's point's derivative)
+        p = ps.p + dr.detach(p - ps.p)
+    ps.p = dr.select(ok, p, ps.p)
     return ps
 
 

@@ -31,8 +31,8 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
-from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_centres,  # noqa: F401
-                             sphere_normals, sphere_radiance, sphere_table,
+from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_placements,  # noqa: F401
+                             sphere_positions, sphere_radiance, sphere_table,
                              spot_cones)     # (projector_cone: re-exported)
 
 
@@ -131,15 +131,15 @@ class EmitterTable(DirectSampling):
         self.sph_le = sphere_radiance(emitters, ids, size) if self.has_sphere else None
         self.all_spheres = self.sph_le is not None
         self.inv_area = inverse_areas(emitters, ids, size)
-        self.sphere_centres = sphere_centres(emitters, ids, size)
+        self.sphere_placements = sphere_placements(emitters, ids, size)
 
     def kinds(self, emitter):
         return Kinds(self, emitter)
 
     def sample_position(self, emitter, time, u, active):
-        """The emitter's ``sample_position``, its normal corrected on spheres (sphere_normals)."""
+        """The emitter's ``sample_position``, on spheres the point on the sphere rays hit (sphere_positions)."""
         ps, w = emitter.sample_position(time, u, active)
-        return sphere_normals(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_centres, active), w
+        return sphere_positions(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_placements, active), w
 
     def pdf_select(self, emitter):
         """Probability of choosing ``emitter`` (an EmitterPtr)."""

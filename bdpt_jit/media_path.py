@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .emitter_tables import sphere_centres, sphere_normals
+from .emitter_tables import sphere_placements, sphere_positions
 from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor, surface_stop
 from .rays import spawn
 from .vertex import Vertex
@@ -252,7 +252,7 @@ class EmitterMedia:
         g = (np.arange(cls.PROBES) + 0.5) / cls.PROBES
         u, v = np.meshgrid(g, g)
         ps, _ = em.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel()))
-        ps = sphere_normals(ps, mi.UInt32(0), sphere_centres([em], [0], 1))
+        ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
         n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
         found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True))
         return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))

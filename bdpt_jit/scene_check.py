@@ -167,6 +167,42 @@ def _check_textured_area_light(shape):
                 "emitter a uniform radiance")
 
 
+def _transform_faults(shape):
+    """Why the to_world of a disk or cylinder ``shape`` places an emitter off the surface its rays
+    hit, or None. Mitsuba samples their positions through ``to_world`` and intersects through
+    its stored inverse (disk) or a radius and length read from it (cylinder): a transform whose
+    inverse does not invert it (``rotate`` about an axis that is not a unit vector: Mitsuba
+    3.9.1 does not normalise it) put a disk light's points 1e-4 of its size off the disk, half
+    of them behind it (bdpt and lt 52% dark); a cylinder with a shear or with unequal x and y
+    scales (which Mitsuba warns of) has no consistent area (its own path 26% bright)."""
+    t = mi.traverse(shape)['to_world']
+    m = np.array(t.matrix, dtype=np.float64).reshape(4, 4)
+    it = np.array(t.inverse_transpose, dtype=np.float64).reshape(4, 4)
+    if not np.allclose(m @ it.T, np.eye(4), atol=1e-4):
+        return ("its to_world's stored inverse does not invert it (a rotation about an axis that is not a unit "
+                "vector? Mitsuba 3.9.1's rotate does not normalise the axis), so the points Mitsuba samples on "
+                "it lie off the surface its rays hit; normalise the rotation axis")
+    if str(shape.class_name()) == 'Cylinder':
+        c = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
+        norms = np.linalg.norm(m[:3, :2], axis=0)
+        if abs(norms[0] - norms[1]) > 1e-4 * norms.max() or not np.allclose(c.T @ c, np.eye(3), atol=1e-4):
+            return ("its to_world shears it or scales its x and y axes unequally, which Mitsuba's cylinder does "
+                    "not support (it warns; its area and its sampled points then disagree with what rays hit); "
+                    "use a rotation, a scale equal in x and y, and a translation")
+    return None
+
+
+def _check_emitter_placement(shape):
+    """Refuses an area emitter on a disk or cylinder placed where Mitsuba's sampled points are
+    not on the surface its rays hit (_transform_faults)."""
+    if str(shape.class_name()) not in ('Disk', 'Cylinder'):
+        return
+    why = _transform_faults(shape)
+    if why is not None:
+        raise UnsupportedSceneError(
+            f"bdpt: the area emitter on the {str(shape.class_name()).lower()} '{shape.id()}' is not supported: {why}")
+
+
 def check_scene(scene: mi.Scene, sensor: mi.Sensor):
     check_variant()
     s_name = _plugin_name(sensor)
@@ -185,6 +221,7 @@ def check_scene(scene: mi.Scene, sensor: mi.Sensor):
             shape = em.get_shape()
             if mi.has_flag(em.flags(), mi.EmitterFlags.SpatiallyVarying) and e_name == 'area':
                 _check_textured_area_light(shape)
+            _check_emitter_placement(shape)
             if e_name == 'directionalarea':
                 try:       # its emitted radiance comes from the texture's sample_spectrum
                     em.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, 1), mi.Float(0.5), True)

@@ -325,6 +325,34 @@ def test_a_film_sampling_its_border_is_refused_where_the_border_is_not_empty():
             check_scene(scene, scene.sensors()[0])
 
 
+def test_disk_and_cylinder_lights_off_the_surface_their_rays_hit_are_refused():
+    """Mitsuba samples a disk's or cylinder's points through to_world and intersects it
+    through the transform's stored inverse (disk) or a radius read from it (cylinder). With a
+    rotation about an axis that is not a unit vector (Mitsuba's rotate does not normalise it)
+    the inverse does not invert the transform: a disk light's sampled points lay 1e-4 of its
+    size off the disk its rays hit, half behind it (bdpt and lt 52% dark); a cylinder scaled
+    unequally in x and y has no consistent area (Mitsuba's path 26% bright). Refused naming the
+    shape; with a unit axis, and a disk scaled unequally, they render (an ellipse is exact)."""
+    T = mi.ScalarTransform4f
+    unit = list(np.array([0.3, 0.2, 0.9]) / np.linalg.norm([0.3, 0.2, 0.9]))
+    cases = [('disk', T().rotate([0.3, 0.2, 0.9], 40).scale(0.2), 'stored inverse does not invert it'),
+             ('cylinder', T().rotate([0.3, 0.2, 0.9], 40).scale(0.2), 'stored inverse does not invert it'),
+             ('cylinder', T().rotate(unit, 40).scale([0.35, 0.12, 0.2]), 'scales its x and y axes unequally'),
+             ('disk', T().rotate(unit, 40).scale([0.35, 0.12, 0.2]), None),
+             ('cylinder', T().rotate(unit, 40).scale([0.15, 0.15, 0.4]), None)]
+    for shape, placement, refused in cases:
+        d = cornell(8)
+        d.pop('light')
+        d['lamp'] = {'type': shape, 'to_world': T().translate([0.1, 0.6, -0.1]) @ placement,
+                     'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': [6.0, 5.0, 4.0]}}}
+        scene = mi.load_dict(d)
+        if refused:
+            with pytest.raises(UnsupportedSceneError, match=f"the area emitter on the {shape} 'lamp'.*{refused}"):
+                check_scene(scene, scene.sensors()[0])
+        else:
+            check_scene(scene, scene.sensors()[0])
+
+
 # ---------------------------------------------------------------------------- null lobes
 def leaf_over_floor(opacity, light='point', material=0.0):
     """A floor lit by a light above a leaf: a rectangle whose BSDF is a ``mask`` of ``opacity``
