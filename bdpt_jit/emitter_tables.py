@@ -35,14 +35,33 @@ def spot_cones(emitters, ids, size):
     cos_cut, axis = [-1.0] * size, [[0.0, 0.0, 1.0] for _ in range(size)]
     for e, i in zip(emitters, ids):
         if e.class_name() == 'SpotLight':
-            params = mi.traverse(e)
-            cos_cut[i] = math.cos(math.radians(float(dr.ravel(params['cutoff_angle']).numpy()[0])))
-            m = np.array(e.world_transform().matrix).reshape(4, 4)
-            a = m[:3, 2] / np.linalg.norm(m[:3, 2])     # the spot shines along local +z
-            axis[i] = [float(a[0]), float(a[1]), float(a[2])]
+            cos_cut[i], axis[i] = _spot_cone(e)
         elif e.class_name() == 'Projector':
             cos_cut[i], axis[i] = projector_cone(e)
     return mi.Float(cos_cut), mi.Vector3f([v[0] for v in axis], [v[1] for v in axis], [v[2] for v in axis])
+
+
+def _spot_cone(emitter):
+    """(cos of the half angle, unit axis) of a cone containing every direction a spot light
+    lights. Mitsuba's spot evaluates the direction d by the local direction ``inverse() * d``
+    (its stored inverse) against the cutoff angle: under a to_world that is a rotation (times a
+    uniform scale) that is the circular cone of the cutoff around the image of +z; under a
+    non-uniform scale (or a transform whose stored inverse is not its inverse) an elliptic one,
+    which the cutoff's cone missed part of (lt 4.2% dark under a spot scaled 1.5 x 0.7). Then
+    the cone bounds the images of 3600 directions of the cutoff's rim, widened by 1e-3 of its
+    angle."""
+    cos_c = math.cos(math.radians(float(dr.ravel(mi.traverse(emitter)['cutoff_angle']).numpy()[0])))
+    inv = np.array(emitter.world_transform().inverse_transpose, dtype=np.float64).reshape(4, 4)[:3, :3].T
+    to_world = np.linalg.inv(inv)             # what maps Mitsuba's local directions to the world's
+    a = to_world[:, 2] / np.linalg.norm(to_world[:, 2])     # the spot shines along local +z
+    rigid = to_world / np.linalg.norm(to_world[:, 0])
+    if np.allclose(rigid.T @ rigid, np.eye(3), atol=1e-6):
+        return cos_c, [float(x) for x in a]
+    phi = np.linspace(0.0, 2 * math.pi, 3600, endpoint=False)
+    sin_c = math.sqrt(max(0.0, 1.0 - cos_c * cos_c))
+    rim = to_world @ np.stack([sin_c * np.cos(phi), sin_c * np.sin(phi), np.full_like(phi, cos_c)])
+    angle = float(np.arccos(np.clip((a @ rim / np.linalg.norm(rim, axis=0)).min(), -1.0, 1.0)))
+    return math.cos(min(math.pi, angle * (1.0 + 1e-3))), [float(x) for x in a]
 
 
 def cone_sphere(emitter) -> bool:
