@@ -64,6 +64,25 @@ def _spot_cone(emitter):
     return math.cos(min(math.pi, angle * (1.0 + 1e-3))), [float(x) for x in a]
 
 
+def remapped_textures(emitters, ids, size):
+    """A Bool per emitter id: an area emitter whose radiance texture maps the surface's uv through
+    a ``to_uv`` transform other than the identity; None if there is none. Mitsuba's bitmap
+    ``sample_position`` ignores ``to_uv``: it draws surface uvs by the texture's own layout, so a
+    tiled or shifted texture is bright where those uvs have no density (technique lt 2.9% dark
+    under one tiled 2 x 3), and light subpaths start uniformly on such emitters
+    (EmitterTable.sample_position)."""
+    flags = [False] * size
+    for e, i in zip(emitters, ids):
+        if 'area' not in emitter_kinds(e.flags()) or not mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying):
+            continue
+        params = mi.traverse(e)
+        for key in params.keys():
+            if key.endswith('to_uv'):
+                m = np.array(params[key].matrix, dtype=np.float64).reshape(3, 3)
+                flags[i] = flags[i] or not np.allclose(m, np.eye(3), atol=1e-7)
+    return mi.Bool(flags) if any(flags) else None
+
+
 def cone_sphere(emitter) -> bool:
     """Whether emitter sampling of ``emitter`` may sample its visible cone itself (direct.py): an
     untextured sphere area emitter. Not a textured sphere (Mitsuba samples it by the texture), nor

@@ -31,8 +31,8 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
-from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, sphere_placements,  # noqa: F401
-                             sphere_positions, sphere_radiance, sphere_table,
+from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, remapped_textures,  # noqa: F401
+                             sphere_placements, sphere_positions, sphere_radiance, sphere_table,
                              spot_cones)     # (projector_cone: re-exported)
 
 
@@ -132,14 +132,25 @@ class EmitterTable(DirectSampling):
         self.all_spheres = self.sph_le is not None
         self.inv_area = inverse_areas(emitters, ids, size)
         self.sphere_placements = sphere_placements(emitters, ids, size)
+        self.uniform_starts = remapped_textures(emitters, ids, size) if self.has_textured_area else None
 
     def kinds(self, emitter):
         return Kinds(self, emitter)
 
     def sample_position(self, emitter, time, u, active):
-        """The emitter's ``sample_position``, on spheres the point on the sphere rays hit (sphere_positions)."""
+        """The emitter's ``sample_position``, on spheres the point on the sphere rays hit
+        (sphere_positions); uniform over the shape where its texture's sampling ignores a
+        ``to_uv`` (remapped_textures)."""
         ps, w = emitter.sample_position(time, u, active)
+        if self.uniform_starts is not None:
+            uniform = active & self._uniform_start(emitter)
+            ps_u = emitter.get_shape().sample_position(time, u, uniform)
+            ps = dr.select(uniform, ps_u, ps)
         return sphere_positions(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_placements, active), w
+
+    def _uniform_start(self, emitter):
+        """Whether light subpaths start uniformly over ``emitter``'s shape (remapped_textures)."""
+        return dr.gather(mi.Bool, self.uniform_starts, dr.reinterpret_array(mi.UInt32, emitter))
 
     def pdf_select(self, emitter):
         """Probability of choosing ``emitter`` (an EmitterPtr)."""
@@ -164,6 +175,8 @@ class EmitterTable(DirectSampling):
         F = mi.EmitterFlags
         textured = (mi.has_flag(flags, F.Surface) & mi.has_flag(flags, F.SpatiallyVarying)
                     & ~mi.has_flag(flags, F.DeltaDirection))
+        if self.uniform_starts is not None:
+            textured &= ~self._uniform_start(emitter)
         n = dr.normalize(mi.Vector3f(ps.n))
         it = dr.zeros(mi.Interaction3f, dr.width(n))
         it.p, it.time = ps.p + n, ps.time
