@@ -117,8 +117,10 @@ class CameraTracer:
         c = self.ctx
         si, depth = v.si, sub.depth
         le = emitter.eval(si, hit_em)
-        ds = mi.DirectionSample3f(c.scene, si, prev)
+        ds = mi.DirectionSample3f(c.scene, si, prev)       # (its normal: the shading normal)
         pdf_y0_a = c.emitters.pdf_select(emitter) * c.emitters.pdf_pos_a(emitter, ds)
+        if c.emitters.smooth is not None:   # smooth-shaded emitter meshes: every density by the triangle's normal
+            ds.n = dr.select(c.emitters.smooth.rank(emitter, hit_em)[1], si.n, ds.n)
         pdf_direct_a = dr.select(depth == 1, pdf_y0_a,
                                  c.emitters.pdf_direct_a(prev, ds, hit_em & (depth > 1)))
         pdf_emit_w = c.emitters.pdf_emit_w_at(emitter, ds, -ray.d, AreaKinds)

@@ -97,8 +97,13 @@ class DiffuseTable:
 
 def _cosines(si, wo_local, wo_world, active):
     """Geometric and shading cosines of the incoming (``si.wi``, towards the previous vertex)
-    and outgoing directions, and the mask that refuses light leaks (shading and geometric
-    normals disagreeing about the side of a direction)."""
+    and outgoing directions, and the lanes where the adjoint is defined (a geometric cosine of
+    wi and a shading cosine of wo that are not 0). Directions on which the shading and
+    geometric normals disagree about the side (light passing a smooth-shaded surface) are kept:
+    Mitsuba's BSDFs evaluate them in the shading frame from the camera side, so its path renders
+    the light they carry, and a light side that refused them left the strategies that sample
+    them from the camera weighted by the ones that cannot (bdpt 93% dark and lt black on light
+    leaking from a point light inside a coarse smooth-shaded shell)."""
     wi_world = si.to_world(si.wi)
     # Mirrored (negative-determinant) transforms give a geometric normal opposite to the
     # shading normal: orient it to the shading side, or every direction reads as a light leak.
@@ -107,7 +112,7 @@ def _cosines(si, wo_local, wo_world, active):
     cos_g_wo = dr.dot(n_g, wo_world)
     cos_s_wi = mi.Frame3f.cos_theta(si.wi)
     cos_s_wo = mi.Frame3f.cos_theta(wo_local)
-    valid = active & (cos_g_wi * cos_s_wi > 0) & (cos_g_wo * cos_s_wo > 0)
+    valid = active & (cos_g_wi != 0) & (cos_s_wo != 0)
     return cos_g_wi, cos_g_wo, cos_s_wi, cos_s_wo, valid
 
 

@@ -18,7 +18,8 @@ OUTSIDE = 1.0 - 1e-4
 
 
 class DirectSampling:
-    """Needs, from EmitterTable: scene, has_sphere, sph_r, sph_c, all_spheres, sph_le, pdf_select.
+    """Needs, from EmitterTable: scene, has_sphere, sph_r, sph_c, all_spheres, sph_le, pdf_select,
+    smooth, uniform_pdf_a.
 
     Where every emitter of the scene is a sphere of constant radiance (``all_spheres``), the
     cone is sampled here from every point outside the sphere, small-looking or not, and the
@@ -72,19 +73,38 @@ class DirectSampling:
     def sample_direct(self, ref_it, u, active):
         """Emitter sampling from ``ref_it``: Mitsuba's ``scene.sample_emitter_direction``
         (emitter chosen by ``scene.sample_emitter``, then the emitter's own sample_direction),
-        except small-looking sphere emitters (small_sphere). Returns (ds, Le / pdf)."""
-        if not self.has_sphere:
+        except small-looking sphere emitters (small_sphere) and smooth-shaded emitter meshes
+        (_smooth_direct). Returns (ds, Le / pdf)."""
+        if not self.has_sphere and self.smooth is None:
             return self.scene.sample_emitter_direction(ref_it, u, False, active)
         index, sel_w, u_x = self.scene.sample_emitter(u.x, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), index, active)
         u2 = mi.Point2f(u_x, u.y)
-        small, centre, r, sin2_max, omc = self.small_sphere(emitter, ref_it.p)
-        small &= active
-        ds, spec = emitter.sample_direction(ref_it, u2, active & ~small)
+        own = mi.Bool(False)
+        if self.has_sphere:
+            cone = self.small_sphere(emitter, ref_it.p)
+            small = cone[0] & active
+            own |= small
+        if self.smooth is not None:
+            smooth = self.smooth.rank(emitter, active)[1]
+            own |= smooth
+        ds, spec = emitter.sample_direction(ref_it, u2, active & ~own)
+        if self.has_sphere:
+            ds, spec = self._sphere_direct(ref_it, emitter, u2, small, cone[1:], ds, spec)
+        if self.smooth is not None:
+            ds, spec = self._smooth_direct(ref_it, emitter, u2, smooth, ds, spec)
+        ds.pdf *= self.scene.pdf_emitter(index, active)
+        return ds, spec * sel_w
+
+    def _sphere_direct(self, ref_it, emitter, u2, small, cone, ds, spec):
+        """(ds, Le / pdf) of emitter sampling on small-looking sphere emitters (lanes ``small``;
+        ``cone``: small_sphere's centre, radius, sin^2 and 1 - cos of the cone); ``ds``,
+        ``spec`` elsewhere."""
+        centre, r, sin2_max, omc = cone
         p, n = self._cone_point(ref_it.p, centre, r, sin2_max, omc, u2)
         to_p = p - ref_it.p
         dist = dr.norm(to_p)
-        ds_s = dr.zeros(mi.DirectionSample3f, dr.width(u))
+        ds_s = dr.zeros(mi.DirectionSample3f, dr.width(dist))
         ds_s.p, ds_s.n, ds_s.d, ds_s.dist, ds_s.time = p, n, to_p * safe_div(1.0, dist), dist, ref_it.time
         ds_s.emitter, ds_s.delta = emitter, mi.Bool(False)
         ds_s.pdf = self._cone_pdf_w(omc)
@@ -92,19 +112,46 @@ class DirectSampling:
             le = dr.gather(mi.Spectrum, self.sph_le, dr.reinterpret_array(mi.UInt32, emitter), small)
         else:
             le = emitter.eval_direction(ref_it, ds_s, small)
-        spec_s = le * safe_div(1.0, ds_s.pdf)
-        ds = dr.select(small, ds_s, ds)
-        spec = dr.select(small, spec_s, spec)
-        ds.pdf *= self.scene.pdf_emitter(index, active)
-        return ds, spec * sel_w
+        return dr.select(small, ds_s, ds), dr.select(small, le * safe_div(1.0, ds_s.pdf), spec)
+
+    def _smooth_direct(self, ref_it, emitter, u2, smooth, ds, spec):
+        """(ds, Le / pdf) of emitter sampling on smooth-shaded emitter meshes (lanes ``smooth``;
+        smooth_emitters.py): a uniform point, its density per unit solid angle by its
+        triangle's normal, its radiance by its shading normal; ``ds``, ``spec`` elsewhere."""
+        _, p, n_geo, n_sh, b = self.smooth.sample(emitter, u2, smooth)
+        to_p = p - ref_it.p
+        dist = dr.norm(to_p)
+        ds_m = dr.zeros(mi.DirectionSample3f, dr.width(dist))
+        ds_m.p, ds_m.n, ds_m.uv, ds_m.time = p, n_geo, b, ref_it.time
+        ds_m.d, ds_m.dist, ds_m.emitter, ds_m.delta = to_p * safe_div(1.0, dist), dist, emitter, mi.Bool(False)
+        ds_m.pdf = self._smooth_pdf_w(ds_m)
+        si = mi.SurfaceInteraction3f(ds_m, ref_it.wavelengths)
+        si.sh_frame = mi.Frame3f(n_sh)
+        si.wi = si.to_local(-ds_m.d)
+        le = emitter.eval(si, smooth)
+        return dr.select(smooth, ds_m, ds), dr.select(smooth, le * safe_div(1.0, ds_m.pdf), spec)
+
+    def _smooth_pdf_w(self, ds):
+        """The density per unit solid angle (emitter choice excluded) of a uniform point ``ds`` on
+        a smooth-shaded emitter mesh, ``ds.n`` its triangle's normal: 1 / area by d^2 / |cos|."""
+        return self.uniform_pdf_a(ds.emitter) * dr.square(ds.dist) * safe_div(1.0, dr.abs(dr.dot(ds.n, ds.d)))
 
     def pdf_direct_w(self, ref_it, ds, active):
         """Density per unit solid angle at ``ref_it`` of sample_direct choosing the emitter
-        point or direction ``ds``, emitter choice included; 0 where a density is not finite
-        (finite_or_zero)."""
-        if not self.has_sphere:
+        point or direction ``ds`` (on a smooth-shaded emitter mesh ``ds.n`` is its triangle's
+        normal), emitter choice included; 0 where a density is not finite (finite_or_zero)."""
+        if not self.has_sphere and self.smooth is None:
             return finite_or_zero(self.scene.pdf_emitter_direction(ref_it, ds, active))
-        small, _, _, _, omc = self.small_sphere(ds.emitter, ref_it.p)
-        pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active & ~small)
-        cone = self._cone_pdf_w(omc) * self.pdf_select(ds.emitter)
-        return finite_or_zero(dr.select(small, cone, pdf_w))
+        own = mi.Bool(False)
+        if self.has_sphere:
+            small, _, _, _, omc = self.small_sphere(ds.emitter, ref_it.p)
+            own |= small
+        if self.smooth is not None:
+            smooth = self.smooth.rank(ds.emitter, active)[1]
+            own |= smooth
+        pdf_w = self.scene.pdf_emitter_direction(ref_it, ds, active & ~own)
+        if self.has_sphere:
+            pdf_w = dr.select(small, self._cone_pdf_w(omc) * self.pdf_select(ds.emitter), pdf_w)
+        if self.smooth is not None:
+            pdf_w = dr.select(smooth, self._smooth_pdf_w(ds) * self.pdf_select(ds.emitter), pdf_w)
+        return finite_or_zero(pdf_w)

@@ -31,6 +31,7 @@ from .jitmath import INV_PI, neg, pdf_w_to_a, safe_div, sel
 from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
+from .smooth_emitters import SmoothEmitters, emission_direction, emission_pdf_w
 from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, remapped_textures,  # noqa: F401
                              sphere_placements, sphere_positions, sphere_radiance, sphere_table,
                              spot_cones)     # (projector_cone: re-exported)
@@ -133,6 +134,8 @@ class EmitterTable(DirectSampling):
         self.inv_area = inverse_areas(emitters, ids, size)
         self.sphere_placements = sphere_placements(emitters, ids, size)
         self.uniform_starts = remapped_textures(emitters, ids, size) if self.has_textured_area else None
+        smooth = SmoothEmitters(scene, emitters, ids, size) if self.has_area else None
+        self.smooth = smooth if smooth is not None and smooth.present else None     # (smooth_emitters.py)
 
     def kinds(self, emitter):
         return Kinds(self, emitter)
@@ -140,13 +143,22 @@ class EmitterTable(DirectSampling):
     def sample_position(self, emitter, time, u, active):
         """The emitter's ``sample_position``, on spheres the point on the sphere rays hit
         (sphere_positions); uniform over the shape where its texture's sampling ignores a
-        ``to_uv`` (remapped_textures)."""
+        ``to_uv`` (remapped_textures); on smooth-shaded meshes bdpt's own, its normal the
+        triangle's (smooth_emitters.py). Returns (ps, weight, shading normal)."""
         ps, w = emitter.sample_position(time, u, active)
         if self.uniform_starts is not None:
             uniform = active & self._uniform_start(emitter)
             ps_u = emitter.get_shape().sample_position(time, u, uniform)
             ps = dr.select(uniform, ps_u, ps)
-        return sphere_positions(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_placements, active), w
+        ps = sphere_positions(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_placements, active)
+        n_sh = mi.Vector3f(ps.n)
+        if self.smooth is not None:
+            smooth, p, n_geo, n_sh_smooth, b = self.smooth.sample(emitter, u, active)
+            ps.p = dr.select(smooth, p, ps.p)
+            ps.n = dr.select(smooth, n_geo, ps.n)
+            ps.uv = dr.select(smooth, b, ps.uv)
+            n_sh = dr.select(smooth, n_sh_smooth, n_sh)
+        return ps, w, n_sh
 
     def _uniform_start(self, emitter):
         """Whether light subpaths start uniformly over ``emitter``'s shape (remapped_textures)."""
@@ -215,9 +227,11 @@ class EmitterTable(DirectSampling):
         e.p_sel = p_sel
         finite = neg(k.infinite)
         # ---- position (area, point, spot)
-        ps, _ = self.sample_position(emitter, time, u_pos, active & finite)
+        ps, _, n_sh = self.sample_position(emitter, time, u_pos, active & finite)
         e.ps = ps
         si_e = mi.SurfaceInteraction3f(ps, wl)
+        if self.smooth is not None:     # emission reads the side of the shading normal
+            si_e.sh_frame = mi.Frame3f(n_sh)
         e.si_e = si_e
         st = EmissionStart(ps, si_e, wl)               # what each emitter kind's block below overwrites
         for kind, start in ((k.area, self._start_area), (k.dir_area, self._start_dir_area),
@@ -229,6 +243,10 @@ class EmitterTable(DirectSampling):
         e.pdf_light_a = p_sel * st.p_pos                     # y0's density (s=1, t=1)
         e.beta = mi.Spectrum(st.value * safe_div(1.0, e.pdf_emit_w))
         e.active = active & (e.pdf_emit_w > 0) & (dr.max(st.value) > 0)
+        # y0 itself (the strategy s=1, t=1), whatever its emitted direction carries: on a
+        # smooth-shaded mesh a direction about the triangle's normal may leave on the shading
+        # normal's dark side (smooth_emitters.py), and y0 is seen by the camera all the same
+        e.active_y0 = active & (e.pdf_light_a > 0)
         # area emitters: the ray leaves a surface; points and infinite emitters' disks: no offset
         e.err = sel(k.surface, self.offsets.error(ps.p, emitter.get_shape(), hit=False), mi.Float(0.0)) \
             if k.surface is not False else mi.Float(0.0)
@@ -244,12 +262,20 @@ class EmitterTable(DirectSampling):
         """Area emitters: cosine-weighted direction around the sampled point's normal."""
         ps, si_e = st.ps, st.si_e
         local = mi.warp.square_to_cosine_hemisphere(u_dir)
-        si_e.wi = local                                      # area emitters read si.wi (and si.uv)
+        if self.smooth is None:
+            si_e.wi = local                                  # area emitters read si.wi (and si.uv)
+            d_area, p_dir, cos_e = si_e.to_world(local), self.pdf_dir_w(local.z), local.z
+        else:           # smooth-shaded meshes: smooth_emitters.emission_direction about the triangle's
+            smooth = self.smooth.rank(emitter, active & kind)[1]        # normal ps.n
+            d_s, p_s = emission_direction(ps.n, u_dir)
+            d_area = dr.select(smooth, d_s, mi.Frame3f(ps.n).to_world(local))
+            p_dir = dr.select(smooth, p_s, self.pdf_dir_w(local.z))
+            cos_e = dr.abs(dr.dot(ps.n, d_area))
+            si_e.wi = si_e.to_local(d_area)                  # the radiance by the shading frame
         le = emitter.eval(si_e, active & kind)
-        d_area = si_e.to_world(local)
-        st.value = sel(kind, le * local.z, st.value)
+        st.value = sel(kind, le * cos_e, st.value)
         st.p_pos = sel(kind, ps.pdf, st.p_pos)               # by area, or by the radiance texture
-        st.p_dir = sel(kind, self.pdf_dir_w(local.z), st.p_dir)
+        st.p_dir = sel(kind, p_dir, st.p_dir)
         st.d = sel(kind, d_area, st.d)
         st.cos_e = sel(kind, dr.abs(dr.dot(ps.n, d_area)), st.cos_e)
 
@@ -395,7 +421,10 @@ class EmitterTable(DirectSampling):
         p_sel = self.pdf_select(emitter)
         out = mi.Float(0.0)
         if k.area is not False:
-            out = sel(k.area, self.pdf_pos_a(emitter, ds) * self.pdf_dir_w(dr.dot(ds.n, d_out)), out)
+            p_dir = self.pdf_dir_w(dr.dot(ds.n, d_out))
+            if self.smooth is not None:     # (ds.n: the triangle's normal there)
+                p_dir = dr.select(self.smooth.rank(emitter)[1], emission_pdf_w(ds.n, d_out), p_dir)
+            out = sel(k.area, self.pdf_pos_a(emitter, ds) * p_dir, out)
         if k.dir_area is not False:
             out = sel(k.dir_area, self.uniform_pdf_a(emitter), out)   # direction: discrete
         if k.delta_pos is not False:
@@ -430,4 +459,4 @@ class EmissionStart:
 class Emission:
     """A light subpath's start (see EmitterTable.sample_emission)."""
     emitter = kinds = p_sel = ps = si_e = d = origin = n_e = cos_e = err = None
-    pdf_emit_w = pdf_light_a = beta = active = ray = None
+    pdf_emit_w = pdf_light_a = beta = active = active_y0 = ray = None

@@ -216,7 +216,10 @@ def emission_ratio(c, e, si1, u_dir, time, active):
     if k.area is not False:
         si_e = mi.SurfaceInteraction3f(e.si_e)
         si_e.p, si_e.n = e.y0_p, e.y0_n
-        si_e.sh_frame = mi.Frame3f(e.y0_n)
+        sh_n = e.y0_n
+        if c.emitters.smooth is not None:       # (smooth-shaded emitter meshes: the side by their shading normal)
+            sh_n = dr.select(c.emitters.smooth.rank(emitter, active)[1], e.si_e.sh_frame.n, sh_n)
+        si_e.sh_frame = mi.Frame3f(sh_n)
         si_e.wi = si_e.to_local(w)
         le = emitter.eval(si_e, active & k.area)
         value = sel(k.area, le * dr.abs(dr.dot(e.y0_n, w)) * cos1 * safe_div(1.0, dist2), value)
@@ -290,7 +293,7 @@ class ADSampling(Sampling):
         with dr.suspend_grad():
             e = super().sample_emission(u_sel, u_pos, u_dir, active, wavelengths)
         if e.kinds.area is not False:
-            ps, _ = c.emitters.sample_position(e.emitter, c.time, u_pos, e.active & e.kinds.area)
+            ps, _, _ = c.emitters.sample_position(e.emitter, c.time, u_pos, e.active & e.kinds.area)
             e.y0_p = sel(e.kinds.area, ps.p, e.origin)
             e.y0_n = sel(e.kinds.area, ps.n, e.n_e)
         else:

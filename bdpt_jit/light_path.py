@@ -47,7 +47,7 @@ class LightTracer:
         # ---------------- s=1, t=1: the emitter vertex y0 seen by the camera ----------------
         u_cam = sampler.next_2d()
         if self.splats and c.strategies.trace_splat_y0 and e.kinds.area is not False:      # only surfaces can be seen directly
-            self.strategy_s1_t1(u_cam, e, active & e.kinds.area)
+            self.strategy_s1_t1(u_cam, e, e.active_y0 & e.kinds.area)
 
         active &= c.max_depth_edges >= 2
         if c.media is None:
@@ -92,7 +92,10 @@ class LightTracer:
         si_to_cam = mi.SurfaceInteraction3f(si_e)
         si_to_cam.wi = si_e.to_local(ds.d)
         le = e.emitter.eval(si_to_cam, ok)
-        ok &= (cos_g > 0) & (dr.max(le) > 0)
+        front = cos_g > 0
+        if c.emitters.smooth is not None:   # (smooth-shaded meshes also emit behind their triangles)
+            front |= c.emitters.smooth.rank(e.emitter, ok)[1]
+        ok &= front & (dr.max(le) > 0)
         ray = spawn_to((ps.p, ps.n, e.err), (c.camera.near_point(ds), mi.Normal3f(0.0), 0.0), ps.time,
                        c.offsets.far_rel, si_e.wavelengths)
         et = self.camera_edge(ray, ds, c.emitter_media.medium(e.emitter, ps.p, ps.n, ds.d, ok), None, ok) \

@@ -257,9 +257,10 @@ def corner(res=16, at_origin=True):
     }
 
 
-def lowpoly_sphere_mesh(n_theta=4, n_phi=6, radius=1.0, center=(0, 0, 0), bsdf=None):
+def lowpoly_sphere_mesh(n_theta=4, n_phi=6, radius=1.0, center=(0, 0, 0), bsdf=None, emitter=None, flip=False):
     """A UV sphere of few triangles with per-vertex normals (interpolated shading normals far
-    from the geometric ones), as an ``mi.Mesh`` object (load_dict accepts it)."""
+    from the geometric ones), as an ``mi.Mesh`` object (load_dict accepts it); ``emitter``: a
+    dict of the emitter it carries; ``flip``: its normals flipped (Mitsuba's flip_normals)."""
     import drjit as dr
     from helpers import uv_sphere
     unit, F = uv_sphere(n_theta, n_phi)
@@ -272,6 +273,9 @@ def lowpoly_sphere_mesh(n_theta=4, n_phi=6, radius=1.0, center=(0, 0, 0), bsdf=N
             F[k] = [a, c, b]
     props = mi.Properties()
     props['bsdf'] = mi.load_dict(bsdf or diffuse(0.8))
+    if emitter is not None:
+        props['emitter'] = mi.load_dict(emitter)
+    props['flip_normals'] = flip
     mesh = mi.Mesh('lowpoly', len(V), len(F), props=props, has_vertex_normals=True)
     p = mi.traverse(mesh)
     p['vertex_positions'] = dr.ravel(mi.Point3f(*(V[:, i].astype(np.float32) for i in range(3))))

@@ -12,7 +12,7 @@ import pytest
 
 from helpers import (agreement, assert_finite, cornell_scene, file_reference, load_scene, no_delta_mask, reference,
                      render_batches)
-from stability_cases import cornell
+from stability_cases import cornell, lowpoly_sphere_mesh
 
 RES = 32
 BATCHES = 16
@@ -319,6 +319,63 @@ def test_light_tracing_covers_the_elliptic_cone_of_a_scaled_spot():
     now bounds the elliptic one (emitter_tables._spot_cone)."""
     ok, msg = against_path(('scaled-spot',), scaled_spot, 4, 'lt', 256, 90_000)
     assert ok, msg
+
+
+def smooth_emitter_box(flip=False, hits_only=False):
+    """The Cornell box (without its ceiling light) lit by a smooth-shaded sphere mesh of 48
+    triangles (stability_cases.lowpoly_sphere_mesh, 4 x 8), emitting outwards, or (``flip``)
+    inwards, where the camera sees from outside only the radiance its shading normals give the
+    triangles' back sides. ``hits_only``: the emitter chosen by emitter sampling once in 10^4
+    (a point light of intensity 0 takes the rest): Mitsuba's path then renders it from the
+    hits of its BSDF samples, by the definition of the emitted radiance alone (its emitter
+    sampling reads the shading normal as the area's)."""
+    d = cornell(16)
+    d.pop('light')
+    emitter = {'type': 'area', 'radiance': {'type': 'rgb', 'value': [8.0, 8.0, 8.0]}}
+    if hits_only:
+        emitter['sampling_weight'] = 1e-4
+        d['dark'] = {'type': 'point', 'position': [0.0, -5.0, 0.0], 'intensity': {'type': 'rgb', 'value': [0.0] * 3}}
+    d['bulb'] = lowpoly_sphere_mesh(4, 8, radius=0.35, center=(0.1, 0.3, 0.0), emitter=emitter, flip=flip,
+                                    bsdf={'type': 'twosided', 'bsdf': {'type': 'diffuse'}})
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('flip', [False, True])
+@pytest.mark.parametrize('technique', ['lt', 'bdpt'])
+def test_a_coarse_smooth_shaded_emitter_mesh(flip, technique):
+    """Light subpaths leave a smooth-shaded emitter mesh by its triangles' normals, emitter
+    sampling converts densities with them, and radiance that leaves behind a triangle (where
+    the shading normal faces) is sampled too (smooth_emitters.py). Before, by the shading
+    normal Mitsuba returns: bdpt and lt 2% bright; with flipped normals bdpt 91% dark, lt
+    black. Against path rendering the emitter from hits alone (smooth_emitter_box)."""
+    ref = reference(('smooth-emitter', flip), lambda: smooth_emitter_box(flip, hits_only=True),
+                    {'type': 'path', 'max_depth': 4}, 2048, BATCHES, 100_000)
+    mine = render_batches(smooth_emitter_box(flip), {'type': 'bdpt', 'max_depth': 4, 'technique': technique},
+                          256, BATCHES)
+    ok, msg = agreement(mine, ref)
+    assert ok, f'flip {flip} {technique}: {msg}'
+
+
+def leaking_shell():
+    """A point light inside a closed smooth-shaded shell of 48 triangles (two-sided diffuse) in
+    the Cornell box without its ceiling light: every path that reaches the camera passes the
+    shell where its shading normals and its triangles disagree about the side of a direction."""
+    d = cornell(16)
+    d.pop('light')
+    d['shell'] = lowpoly_sphere_mesh(4, 8, radius=0.35, center=(0.1, 0.3, 0.0),
+                                     bsdf={'type': 'twosided', 'bsdf': {'type': 'diffuse'}})
+    d['inside'] = {'type': 'point', 'position': [0.1, 0.3, 0.0], 'intensity': {'type': 'rgb', 'value': [5.0] * 3}}
+    return mi.load_dict(d)
+
+
+@pytest.mark.parametrize('technique', ['lt', 'bdpt'])
+def test_light_leaking_through_a_smooth_shaded_shell(technique):
+    """Mitsuba's BSDFs evaluate in the shading frame, so its path renders light that passes a
+    smooth-shaded surface; light vertices take those directions too (connect._cosines): with
+    them refused, lt was black here and bdpt 93% dark (its camera-side strategies weighted by
+    the light-side ones that could not sample them)."""
+    ok, msg = against_path(('leaking-shell',), leaking_shell, 4, technique, 256, 110_000)
+    assert ok, f'{technique}: {msg}'
 
 
 def test_hide_emitters_with_an_environment():
