@@ -125,14 +125,17 @@ def is_null(bsdf, si):
     transport.scatter), and an edge passes it weighted by that lobe's transmission, as volpath's
     shadow rays do."""
     flags = bsdf.flags()
-    return si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
+    shape = si.shape                # (an emitter that is no medium transition is met: scene_check.null_emitter_shape)
+    return (si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
+            & ~(shape.is_emitter() & ~shape.is_medium_transition()))
 
 
 def partly_null(bsdf, si, active):
     """Lanes of ``active`` whose hit ``si`` is a BSDF with a Null lobe beside others (is_null),
     and the Spectrum that lobe passes there (``eval_null_transmission``: 1 - R of a thin
     dielectric, 1 - opacity of a mask); 0 elsewhere."""
-    part = active & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+    flags = bsdf.flags()
+    part = active & si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) != 0)
     return part, dr.select(part, bsdf.eval_null_transmission(si, part), 0.0)
 
 

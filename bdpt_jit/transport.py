@@ -14,6 +14,7 @@ from .loops import while_once
 from .mis import MISState
 from .roulette import roulette
 from .vertex import IMPORTANCE, RADIANCE, bsdf_context, context_without_null
+from .media import _LOBES
 
 PENDING_HITS = True     # False: camera walks carry whole interactions (for side-by-side measurements)
 DEFENSIVE = 0.1         # technique lt with the exact adjoint: the share of uniform directions (_defensive)
@@ -164,7 +165,10 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
         pdf_fwd_w, factor, wo_world, pdf_rev_w, active, is_delta, u, eta = media_path.sample_direction(
             ctx, mode, sampler, v, sub.active, surface_sample)
     if null_lobe:       # media: a walk that stopped at a partly null surface goes on through its other lobes
-        active = active & ~(null_lobe[0] & ~v.in_medium)        # (its Null lobe: media.MediumTracer.sample_distance)
+        # (its Null lobe: media.MediumTracer.sample_distance); a null emitter's vertex goes on
+        # through its Null lobe (scene_check.null_emitter_shape)
+        partly = (v.bsdf.flags() & _LOBES) != 0
+        active = active & ~(null_lobe[0] & ~v.in_medium & partly)
     beta = sub.beta * factor
     camera_side = mode == RADIANCE
     if ctx.ad and not camera_side:   # the factor without derivatives: the edge's derivative comes with edge_ratio

@@ -361,6 +361,36 @@ def test_disk_and_cylinder_lights_off_the_surface_their_rays_hit_are_refused():
 
 
 # ---------------------------------------------------------------------------- null lobes
+def null_emitters(mirror=False, leaf=False):
+    """The Cornell box with its light's BSDF ``null`` and a second emitter of BSDF ``null`` in
+    view (a panel turned towards the camera); ``mirror``: a mirror ball that shows the light;
+    ``leaf``: a leaf of opacity 0.4 (a ``mask``: partly null surfaces, media.MediumTracer)."""
+    d = cornell(RES)
+    d['light']['bsdf'] = {'type': 'null'}
+    d['panel'] = {'type': 'rectangle', 'to_world': T().translate([0.3, 0.0, 0.2]).rotate([0, 1, 0], 20).scale(0.2),
+                  'emitter': {'type': 'area', 'radiance': rgb([3.0, 2.0, 1.0])}, 'bsdf': {'type': 'null'}}
+    if mirror:
+        d['ball'] = {'type': 'sphere', 'center': [0.3, -0.5, 0.2], 'radius': 0.35, 'bsdf': {'type': 'conductor'}}
+    if leaf:
+        d['leaf'] = {'type': 'rectangle', 'to_world': T().translate([-0.3, 0.3, 0.3]).rotate([1, 0, 0], 60).scale(0.3),
+                     'bsdf': {'type': 'mask', 'opacity': 0.4, 'bsdf': {'type': 'twosided', 'bsdf': diffuse(0.8)}}}
+    return d
+
+
+@pytest.mark.parametrize('case', ['pt', 'bdpt-mirror', 'pt-leaf'])
+def test_emitters_whose_bsdf_is_null(case):
+    """An emitter whose BSDF is ``null`` is met by walks as a surface with a delta lobe that goes
+    straight on (scene_check.null_emitter_shape), as Mitsuba's path meets it: passed as an
+    invisible surface, no camera subpath collected its emission (pt 68% dark, bdpt 2.5% dark
+    where a mirror shows the light). With a mask in the scene (partly null surfaces, walked by
+    media.MediumTracer) the reference is volpath at unbounded depth, where its convention (a
+    null surface counts no bounce) and path's agree."""
+    technique, _, extra = case.partition('-')
+    ref_integrator = {'type': 'volpath', 'max_depth': -1} if extra == 'leaf' else {'type': 'path', 'max_depth': 4}
+    check(f'null-emitters-{extra}', lambda: null_emitters(mirror=extra == 'mirror', leaf=extra == 'leaf'),
+          ref_integrator, 1024, {**ref_integrator, 'type': 'bdpt', 'technique': technique}, 64)
+
+
 def leaf_over_floor(opacity, light='point', material=0.0):
     """A floor lit by a light above a leaf: a rectangle whose BSDF is a ``mask`` of ``opacity``
     over a two-sided diffuse of reflectance ``material`` (None: no leaf; 'null': a null BSDF).
