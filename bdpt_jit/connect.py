@@ -106,7 +106,8 @@ def _cosines(si, wo_local, wo_world, active):
     leaking from a point light inside a coarse smooth-shaded shell)."""
     wi_world = si.to_world(si.wi)
     # Mirrored (negative-determinant) transforms give a geometric normal opposite to the
-    # shading normal: orient it to the shading side, or every direction reads as a light leak.
+    # shading normal: oriented to the shading side (the cosines' signs then agree on ordinary
+    # directions; every factor built from them takes absolute values).
     n_g = dr.mulsign(si.n, dr.dot(si.n, si.sh_frame.n))
     cos_g_wi = dr.dot(n_g, wi_world)
     cos_g_wo = dr.dot(n_g, wo_world)
@@ -118,7 +119,8 @@ def _cosines(si, wo_local, wo_world, active):
 
 def adjoint_correction(si, wo_local, wo_world, active):
     """Shading-normal factor of the adjoint BSDF, |cos_s(wi) cos_g(wo)| / |cos_s(wo) cos_g(wi)|
-    (Veach's eq. 5.17), for BSDFs reciprocal in the surface's shading frame, and the leak mask."""
+    (Veach's eq. 5.17), for BSDFs reciprocal in the surface's shading frame, and the lanes where it
+    is defined (_cosines)."""
     cos_g_wi, cos_g_wo, cos_s_wi, cos_s_wo, valid = _cosines(si, wo_local, wo_world, active)
     denom = cos_s_wo * cos_g_wi
     factor = dr.select(valid & (denom != 0), dr.abs(cos_s_wi * cos_g_wo / denom), 0.0)

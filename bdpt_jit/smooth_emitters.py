@@ -112,7 +112,7 @@ class SmoothEmitters:
         self.corners = [mi.Point3f(tri[3 * k], tri[3 * k + 1], tri[3 * k + 2]) for k in range(3)]   # face -> p0, p1, p2
         nrm = np.concatenate(normals).T.astype(np.float32)
         self.vertex_normals = [mi.Vector3f(nrm[3 * k], nrm[3 * k + 1], nrm[3 * k + 2]) for k in range(3)]
-        self.faces = len(key)
+        self.face_count = len(key)
 
     def rank(self, emitter, active=True):
         """Per lane: the rank of ``emitter`` among the smooth meshes, and whether it is one."""
@@ -124,7 +124,7 @@ class SmoothEmitters:
         (smooth, point, triangle normal, shading normal, barycentric uv)."""
         rank, smooth = self.rank(emitter, active)
         target = mi.Float64(rank) + mi.Float64(dr.clip(u.y, 0.0, 1.0 - 2.0 ** -24))
-        face = dr.binary_search(0, self.faces - 1,
+        face = dr.binary_search(0, self.face_count - 1,
                                 lambda i: dr.gather(mi.Float64, self.key, i, smooth) <= target)
         hi = dr.gather(mi.Float64, self.key, face, smooth)
         first = dr.gather(mi.UInt32, self.first, rank, smooth)
