@@ -282,7 +282,13 @@ class ADSampling(Sampling):
         k = c.emitters.kinds(ds.emitter)
         geo = sel(k.area, dr.abs(dr.dot(ds.n, ds.d)) * safe_div(1.0, dr.square(ds.dist)), mi.Float(1.0))
         ds.pdf = dr.detach(ds.pdf)
-        return ds, dr.detach(w) * ratio(le * geo)
+        value = dr.detach(w) * ratio(le * geo)
+        if c.emitters.smooth is not None:
+            # smooth-shaded emitter meshes (smooth_emitters.py): eval_direction would read the
+            # side from ds.n, the triangle's normal; w already holds Le by the shading normal with
+            # its derivative, and their points are not differentiated (not sampled by bdpt if so)
+            value = dr.select(c.emitters.smooth.rank(ds.emitter, active)[1], w, value)
+        return ds, value
 
     def sample_emission(self, u_sel, u_pos, u_dir, active, wavelengths=None):
         """Everything sampled without derivatives except the emitter point of area emitters,
