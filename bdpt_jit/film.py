@@ -1,16 +1,22 @@
 """The film: camera-subpath samples (s=0, s=1, connections) go into one image block with the
 film's reconstruction filter and are normalised by their filter weights, as Mitsuba's
-``path`` does; light-image splats (t=1) go into a second block with normalised filter weights
-and no weight channel, as Mitsuba's ``ptracer`` does. The two are developed apart and summed.
+``path`` does; light-image splats (t=1) go into a second block with the filter's weights
+unnormalised and no weight channel. The two are developed apart and summed.
 
-Both must estimate the same pixel, or their MIS combination is biased. Camera samples lie inside
-the crop, so a pixel near its edge averages them under its filter cut at the edge and normalised
-again (``path``'s pixel). A splat's filter weights are normalised over its whole footprint, and
-splats from outside the crop never come, so with a filter wider than a pixel (Mitsuba's default
-``gaussian``, ``tent``, ...) the light image's edge pixels lack the filter's mass beyond the edge:
-a uniform emitter filling the view came out 0.84 in ``ptracer``'s and lt's edge pixels with the
-Gaussian filter, 0.91 in bdpt's. ``splat_gain`` divides each light-image pixel by the share of its
-filter's weight that falls inside the crop, which makes its pixel ``path``'s.
+Both must estimate the same pixel, or their MIS combination is biased. The camera image's pixel
+j is path's: the samples' values weighted by f(x - c_j), over the sum of those weights, so it
+estimates the integral of f(x - c_j) L(x) over the crop's film positions x against the
+integral of f(x - c_j) there (near the crop's edge the filter is cut at it). A splat at x adds
+its value times f(x - c_j) to pixel j, so the light image estimates the first integral; the
+second is ``splat_gain``'s, by which each light-image pixel is divided (splat_coverage:
+the share of the filter's mass over the crop; filter_mass: the whole). Mitsuba's ``ptracer``
+normalises each splat's weights over its footprint instead: that estimates the same pixel
+only for filters whose weights sum to one over the pixel grid (box, tent) and where no part of
+the footprint lies beyond the crop. Its edge pixels lacked the filter's mass beyond the edge (a
+uniform emitter filling the view came out 0.84 there with the Gaussian filter, 0.91 in bdpt's),
+and under a Gaussian of standard deviation 0.2, whose weights sum to between 0.6 and 1.0 over
+the grid, lt's pixel across the Cornell box light's edge was 2.9 times path's (the image mean
+-0.55%; bdpt and lt failed the agreement test, p 1e-34).
 
 One place holds the light image's scale (see ``splat_scale``)."""
 
@@ -23,20 +29,41 @@ import numpy as np
 COVERAGE_QUADRATURE = 64        # splat positions a pixel in splat_coverage's quadrature
 
 
+def _row(rfilter, n):
+    """Per pixel of a row of ``n`` pixels (one pixel high), what splats of total mass 1 per pixel
+    spread uniformly along the row bring it through Mitsuba's own ImageBlock, unnormalised (a
+    midpoint quadrature): the integral of its filter's weight over the row times the weight
+    f(0) of the row's own centre in y."""
+    block = mi.ImageBlock(mi.ScalarVector2u(n, 1), mi.ScalarPoint2i(0, 0), 1, rfilter=rfilter, normalize=False)
+    k = dr.arange(mi.Float, n * COVERAGE_QUADRATURE)
+    pos = mi.Point2f((k + 0.5) / COVERAGE_QUADRATURE, 0.5)
+    block.put(pos, [dr.full(mi.Float, 1.0 / COVERAGE_QUADRATURE, n * COVERAGE_QUADRATURE)])
+    return np.array(block.tensor(), dtype=np.float64).reshape(n)
+
+
+def _full_row(rfilter):
+    """(a row long enough that its middle pixel's footprint lies inside, that pixel's index)."""
+    m = 2 * math.ceil(rfilter.radius()) + 3
+    return m, m // 2
+
+
 def splat_coverage(rfilter, length: int):
-    """Per pixel of a row of ``length`` pixels, the share of its filter's weight that splats
-    from positions inside the row bring it (1 away from the ends). A midpoint quadrature through
-    Mitsuba's own normalised ImageBlock, so the share is the one its splats get; the filters are
-    separable, so a crop's share is the product of its row's and its column's."""
-    def row(n):
-        block = mi.ImageBlock(mi.ScalarVector2u(n, 1), mi.ScalarPoint2i(0, 0), 1,
-                              rfilter=rfilter, normalize=True)
-        k = dr.arange(mi.Float, n * COVERAGE_QUADRATURE)
-        pos = mi.Point2f((k + 0.5) / COVERAGE_QUADRATURE, 0.5)
-        block.put(pos, [dr.full(mi.Float, 1.0 / COVERAGE_QUADRATURE, n * COVERAGE_QUADRATURE)])
-        return np.array(block.tensor(), dtype=np.float64).reshape(n)
-    m = 2 * math.ceil(rfilter.radius()) + 3          # its middle pixel's footprint lies inside
-    return row(length) / row(m)[m // 2]              # the y axis' constant share divided out
+    """Per pixel of a row of ``length`` pixels, the share of its filter's weight that lies over
+    the row (1 away from the ends): the integral of f(x - c_j) over the row's positions against
+    the one over the whole line. The filters are separable, so a crop's share is the product of
+    its row's and its column's."""
+    m, mid = _full_row(rfilter)
+    return _row(rfilter, length) / _row(rfilter, m)[mid]
+
+
+def filter_mass(rfilter):
+    """The integral of the filter's weight over the plane, as Mitsuba's ImageBlock weighs
+    (separable: the square of the line's)."""
+    m, mid = _full_row(rfilter)
+    centre = mi.ImageBlock(mi.ScalarVector2u(1, 1), mi.ScalarPoint2i(0, 0), 1, rfilter=rfilter, normalize=False)
+    centre.put(mi.Point2f(0.5, 0.5), [mi.Float(1.0)])
+    f0 = math.sqrt(float(np.array(centre.tensor()).ravel()[0]))      # f(0) x f(0)
+    return (_row(rfilter, m)[mid] / f0) ** 2
 
 
 _GAINS = {}                     # (variant, filter, width, height) -> splat_gain's array
@@ -45,15 +72,15 @@ _GAINS = {}                     # (variant, filter, width, height) -> splat_gain
 def _gain(rfilter, width, height):
     key = (mi.variant(), str(rfilter), width, height)
     if key not in _GAINS:
-        cov = np.outer(splat_coverage(rfilter, height), splat_coverage(rfilter, width))
-        gain = np.where(cov > 1e-3, 1.0 / np.maximum(cov, 1e-3), 1.0)     # (a pixel's own centre: far above)
+        cov = np.outer(splat_coverage(rfilter, height), splat_coverage(rfilter, width)) * filter_mass(rfilter)
+        gain = np.where(cov > 1e-6, 1.0 / np.maximum(cov, 1e-6), 1.0)
         _GAINS[key] = gain.astype(np.float32).reshape(height, width, 1)
     return mi.TensorXf(_GAINS[key])
 
 
 def splat_gain(film: mi.Film):
     """The light image's per-pixel factor (H x W x 1) that makes its pixels the camera image's
-    (module docstring); None for filters that spill no weight into a neighbour (``box``)."""
+    (module docstring); None for filters whose weight is 1 over a pixel and 0 beyond (``box``)."""
     rfilter = film.rfilter()
     if rfilter.radius() <= 0.5 + 1e-6:
         return None
@@ -71,7 +98,7 @@ class FilmAccumulator:
         self.aov_names = list(aov_names)
         film.prepare(self.aov_names)
         self.cam = film.create_block()
-        self.lt = film.create_block(normalize=True)
+        self.lt = film.create_block(normalize=False)
         self.lt.set_coalesce(False)
         self.n_channels = self.cam.channel_count()
         self.n_aov = len(self.aov_names)
@@ -110,7 +137,7 @@ class FilmAccumulator:
         self.cam.put(pos, self._channels(value, alpha, list(aov_values), 1.0), active)
 
     def put_splat(self, uv_in_crop, value, active, wavelengths):
-        """A light-image splat: no alpha, no weight (normalised with the film, as ptracer)."""
+        """A light-image splat: no alpha, no weight; the filter's weights unnormalised (module docstring)."""
         pos = uv_in_crop + self.crop_offset
         if self.special:
             self.lt.put(pos, self.film.prepare_sample(value, wavelengths, self.n_channels, 0.0, 0.0, active),
