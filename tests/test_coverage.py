@@ -352,6 +352,24 @@ def test_a_film_sampling_its_border_is_refused_where_the_border_is_not_empty():
             check_scene(scene, scene.sensors()[0])
 
 
+def test_a_directional_emitter_whose_transform_scales_its_direction_is_refused():
+    """Mitsuba's directional emitter takes to_world * (0, 0, 1) unnormalised as its direction:
+    its path renders a scaled one brighter by the scale, light subpaths leave along the unit
+    direction (bdpt 31% and lt 50% below path under a uniform scale of 2). Refused naming the
+    emitter; a rotation alone renders."""
+    look = T().look_at(origin=[0, 0, 3], target=[0.2, -0.3, 0], up=[0, 1, 0])
+    for scale, refused in ((2.0, True), ([1.0, 1.0, 0.5], True), (1.0, False)):
+        d = cornell(8)
+        d['sun'] = {'type': 'directional', 'to_world': look @ T().scale(scale), 'id': 'sun',
+                    'irradiance': {'type': 'rgb', 'value': [2.0, 2.0, 2.0]}}
+        scene = mi.load_dict(d)
+        if refused:
+            with pytest.raises(UnsupportedSceneError, match="directional emitter 'sun' has a to_world that scales"):
+                check_scene(scene, scene.sensors()[0])
+        else:
+            check_scene(scene, scene.sensors()[0])
+
+
 def test_disk_and_cylinder_lights_off_the_surface_their_rays_hit_are_refused():
     """Mitsuba samples a disk's or cylinder's points through to_world and intersects it
     through the transform's stored inverse (disk) or a radius read from it (cylinder). With a
