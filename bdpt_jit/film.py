@@ -35,9 +35,10 @@ def _row(rfilter, n):
     midpoint quadrature): the integral of its filter's weight over the row times the weight
     f(0) of the row's own centre in y."""
     block = mi.ImageBlock(mi.ScalarVector2u(n, 1), mi.ScalarPoint2i(0, 0), 1, rfilter=rfilter, normalize=False)
-    k = dr.arange(mi.Float, n * COVERAGE_QUADRATURE)
-    pos = mi.Point2f((k + 0.5) / COVERAGE_QUADRATURE, 0.5)
-    block.put(pos, [dr.full(mi.Float, 1.0 / COVERAGE_QUADRATURE, n * COVERAGE_QUADRATURE)])
+    q = max(COVERAGE_QUADRATURE, math.ceil(COVERAGE_QUADRATURE / 2 / rfilter.radius()))   # (narrow filters: finer)
+    k = dr.arange(mi.Float, n * q)
+    pos = mi.Point2f((k + 0.5) / q, 0.5)
+    block.put(pos, [dr.full(mi.Float, 1.0 / q, n * q)])
     return np.array(block.tensor(), dtype=np.float64).reshape(n)
 
 
@@ -80,9 +81,11 @@ def _gain(rfilter, width, height):
 
 def splat_gain(film: mi.Film):
     """The light image's per-pixel factor (H x W x 1) that makes its pixels the camera image's
-    (module docstring); None for filters whose weight is 1 over a pixel and 0 beyond (``box``)."""
+    (module docstring); None for ``box``, whose weight is 1 over a pixel and 0 beyond. Every
+    other filter needs it, however narrow: a Gaussian of standard deviation 0.1 (radius 0.4)
+    weighs a splat by at most 1 and 0.063 on average over its pixel (lt 94% dark without it)."""
     rfilter = film.rfilter()
-    if rfilter.radius() <= 0.5 + 1e-6:
+    if str(rfilter.class_name()) == 'BoxFilter':
         return None
     w, h = (int(v) for v in film.crop_size())
     return _gain(rfilter, w, h)
