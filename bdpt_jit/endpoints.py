@@ -145,18 +145,23 @@ class EmitterTable(DirectSampling):
         (sphere_positions); uniform over the shape where its texture's sampling ignores a
         ``to_uv`` (remapped_textures); on smooth-shaded meshes bdpt's own, its normal the
         triangle's (smooth_emitters.py). Returns (ps, weight, shading normal)."""
-        ps, w = emitter.sample_position(time, u, active)
+        mitsubas = active        # the lanes Mitsuba's sample_position serves (not replaced below)
         if self.uniform_starts is not None:
             uniform = active & self._uniform_start(emitter)
-            ps_u = emitter.get_shape().sample_position(time, u, uniform)
-            ps = dr.select(uniform, ps_u, ps)
+            mitsubas = mitsubas & ~uniform
+        if self.smooth is not None:
+            smooth = self.smooth.rank(emitter, active)[1]
+            mitsubas = mitsubas & ~smooth
+        ps, w = emitter.sample_position(time, u, mitsubas)
+        if self.uniform_starts is not None:
+            ps = dr.select(uniform, emitter.get_shape().sample_position(time, u, uniform), ps)
         ps = sphere_positions(ps, dr.reinterpret_array(mi.UInt32, emitter), self.sphere_placements, active)
         n_sh = mi.Vector3f(ps.n)
         if self.smooth is not None:
-            smooth, p, n_geo, n_sh_smooth, b = self.smooth.sample(emitter, u, active)
-            ps.p = dr.select(smooth, p, ps.p)
-            ps.n = dr.select(smooth, n_geo, ps.n)
-            ps.uv = dr.select(smooth, b, ps.uv)
+            _, p, n_geo, n_sh_smooth, b = self.smooth.sample(emitter, u, smooth)
+            ps.p, ps.n, ps.uv = dr.select(smooth, p, ps.p), dr.select(smooth, n_geo, ps.n), dr.select(smooth, b, ps.uv)
+            ps.pdf = dr.select(smooth, self.uniform_pdf_a(emitter), ps.pdf)
+            ps.time = dr.select(smooth, time, ps.time)
             n_sh = dr.select(smooth, n_sh_smooth, n_sh)
         return ps, w, n_sh
 

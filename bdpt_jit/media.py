@@ -66,13 +66,16 @@ class MediaInfo:
     any_null (a shape's BSDF has a Null lobe: with no medium, the tracer still walks and
     connects through such surfaces, context.media_setup), exclude_null (every partly null BSDF
     is thin-glass-like: asked to leave Null out it samples its delta lobes alone, so a walk that
-    stops there samples them so, transport._sample). Built by scene_check.media_info."""
+    stops there samples them so, transport._sample), null_emitters (an emitter's BSDF is ``null``
+    alone: walks and edges meet it, scene_check.null_emitter_shape). Built by
+    scene_check.media_info."""
 
     def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False,
-                 varying_albedo=False, any_null=False, exclude_null=False):
+                 varying_albedo=False, any_null=False, exclude_null=False, null_emitters=False):
         self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
         self.gray, self.partial_null, self.varying_albedo = gray, partial_null, varying_albedo
         self.any_null, self.exclude_null = any_null, exclude_null
+        self.null_emitters = null_emitters
 
 
 def has_medium(medium):
@@ -116,18 +119,22 @@ def medium_at_emitter(emitter, n, d, active=True):
 _LOBES = int(mi.BSDFFlags.Reflection | mi.BSDFFlags.Transmission) & ~int(mi.BSDFFlags.Null)
 
 
-def is_null(bsdf, si):
+def is_null(bsdf, si, null_emitters=True):
     """Lanes whose hit ``si`` is an index-matched boundary: a BSDF whose only lobe is Null (the
     ``null`` plugin). A BSDF with a Null lobe beside others (``thindielectric``, whose straight
     transmission is flagged Null; ``mask`` of opacity below 1) is ``partly_null``: a walk passes it
     with that lobe's probability, counting no bounce, else stops there as a surface vertex
     (MediumTracer._partial_step; a vertex that then draws the Null lobe again ends,
     transport.scatter), and an edge passes it weighted by that lobe's transmission, as volpath's
-    shadow rays do."""
+    shadow rays do. An emitter of such a BSDF on a shape that is no medium transition is met
+    instead (scene_check.null_emitter_shape), where ``null_emitters`` (MediaInfo's: False where
+    the scene has none, and the shape's virtual calls are left out)."""
     flags = bsdf.flags()
-    shape = si.shape                # (an emitter that is no medium transition is met: scene_check.null_emitter_shape)
-    return (si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
-            & ~(shape.is_emitter() & ~shape.is_medium_transition()))
+    out = si.is_valid() & mi.has_flag(flags, mi.BSDFFlags.Null) & ((flags & _LOBES) == 0)
+    if not null_emitters:
+        return out
+    shape = si.shape
+    return out & ~(shape.is_emitter() & ~shape.is_medium_transition())
 
 
 def partly_null(bsdf, si, active):
@@ -367,7 +374,7 @@ class MediumTracer:
             if self.info.heterogeneous:        # (homogeneous only: T_maj stays 1, a constant)
                 tmaj[going] = tmaj * seg[2]
             bsdf = si.bsdf(ray)
-            null = hit & is_null(bsdf, si)
+            null = hit & is_null(bsdf, si, self.info.null_emitters)
             if self.info.partial_null:      # passed through the Null lobe, with its probability in the density
                 part, passed = partly_null(bsdf, si, hit & ~null)
                 tr[part], tr_hom[part] = mi.Spectrum(tr * passed), mi.Spectrum(tr_hom * mean(passed))
@@ -488,7 +495,7 @@ class MediumTracer:
             found = dr.select(coll, mei, found)
             factor = dr.select(coll, f, factor)
             bsdf = si.bsdf(ray)
-            null = hit & ~coll & is_null(bsdf, si)
+            null = hit & ~coll & is_null(bsdf, si, self.info.null_emitters)
             if self.info.partial_null:      # a partly null surface: passed with its Null lobe's probability
                 null, factor = self._partial_step(sampler, (si, bsdf), hit & ~coll & ~null, null, (tr_hom, w, factor))
             crossings += 1

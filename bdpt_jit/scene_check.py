@@ -559,6 +559,7 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
                      gray=all(_gray(m) for m in media),
                      partial_null=any(_partial_null(s.bsdf()) for s in scene.shapes()),
                      any_null=any(_any_null(s.bsdf()) and not null_emitter_shape(s) for s in scene.shapes()),
+                     null_emitters=any(null_emitter_shape(s) for s in scene.shapes()),
                      exclude_null=_null_excludable(_distinct([s.bsdf() for s in scene.shapes() if _partial_null(s.bsdf())])),
                      varying_albedo=any(m.is_homogeneous() and _varying_albedo(m) for m in media))
 

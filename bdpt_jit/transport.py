@@ -167,8 +167,10 @@ def scatter(ctx, mis, mode, sampler, v, sub, merge_here=True):
     if null_lobe:       # media: a walk that stopped at a partly null surface goes on through its other lobes
         # (its Null lobe: media.MediumTracer.sample_distance); a null emitter's vertex goes on
         # through its Null lobe (scene_check.null_emitter_shape)
-        partly = (v.bsdf.flags() & _LOBES) != 0
-        active = active & ~(null_lobe[0] & ~v.in_medium & partly)
+        ends = null_lobe[0] & ~v.in_medium
+        if ctx.media.info.null_emitters:
+            ends &= (v.bsdf.flags() & _LOBES) != 0
+        active = active & ~ends
     beta = sub.beta * factor
     camera_side = mode == RADIANCE
     if ctx.ad and not camera_side:   # the factor without derivatives: the edge's derivative comes with edge_ratio
