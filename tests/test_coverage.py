@@ -248,6 +248,7 @@ def test_meters_agree_with_path(kind, technique, mis):
     ('checker', 'sphere', 'bdpt', 'power', 256),
     ('bitmap', 'disk', 'bdpt', 'power', 256),
     ('tiled', 'rectangle', 'lt', 'power', 1024),
+    ('tiled', 'rectangle', 'bdpt', 'power', 256),
 ])
 def test_textured_area_light(texture, shape, technique, mis, spp):
     """Emission at the sampled point's uv; positions at Mitsuba's texture-driven density (the
