@@ -36,6 +36,22 @@ if isinstance(_mi, Exception):
     raise _mi
 mi = _mi
 
+# Fewest threads in Dr.Jit's pool: Mitsuba 3.9.1 reads and writes OpenEXR files with tasks in
+# that pool that wait on one another, so with one thread (a machine or container of one CPU, or
+# DRJIT_NUM_THREADS=1) mi.Bitmap hangs for good on every .exr: an envmap, a texture, the CLI's
+# output. Two threads on one CPU cost nothing measurable.
+MIN_THREADS = 2
+
+
+def ensure_min_threads():
+    """At least MIN_THREADS threads in Dr.Jit's pool (see there)."""
+    import drjit as dr
+    if dr.thread_count() < MIN_THREADS:
+        dr.set_thread_count(MIN_THREADS)
+
+
+ensure_min_threads()
+
 # the kernels' modules, in import order: they hold the active variant's types (contexts,
 # record layouts, the plugin's base class), and are imported again when the variant changes
 _KERNEL_MODULES = ('jitmath', 'rays', 'strategies', 'cameras', 'direct', 'emitter_tables', 'endpoints', 'connect', 'vertex',

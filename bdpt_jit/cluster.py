@@ -219,9 +219,10 @@ def _start_worker(job, gpu, cpus):
         import mitsuba as mi
         if mi.variant() != variant:
             mi.set_variant(variant)
-        if cpus and variant.startswith('llvm_') and dr.thread_count() != max(int(cpus), 1):
-            dr.set_thread_count(max(int(cpus), 1))
         import bdpt_jit
+        threads = max(int(cpus), bdpt_jit.MIN_THREADS) if cpus else None     # (one hangs on .exr files)
+        if threads and variant.startswith('llvm_') and dr.thread_count() != threads:
+            dr.set_thread_count(threads)
         bdpt_jit.register()
     except Exception as e:
         raise ChunkFailed(f"the worker cannot import the bdpt_jit plugin with Mitsuba variant {variant}: "

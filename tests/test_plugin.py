@@ -1,5 +1,9 @@
 """The plugin contract: registration, parameters and their errors, refused scenes."""
 
+import os
+import subprocess
+import sys
+
 import mitsuba as mi
 import pytest
 
@@ -235,3 +239,29 @@ def test_pass_count_is_the_plans_length(spp, n_pixels, per_pass):
         for p in range(start, start + count):
             cover[p] += k
     assert cover == [spp] * n_pixels
+
+
+ONE_CPU = r'''
+import sys
+import numpy as np
+import bdpt_jit, drjit as dr, mitsuba as mi
+print(dr.thread_count(), flush=True)
+mi.Bitmap(np.ones((4, 4, 3), np.float32)).write(sys.argv[1])
+print(float(np.array(mi.Bitmap(sys.argv[1])).sum()), flush=True)
+'''
+
+
+@pytest.mark.skipif(not hasattr(os, 'sched_setaffinity'), reason='needs Linux CPU affinity')
+def test_one_cpu_reads_and_writes_exr_files(tmp_path):
+    """On one CPU Dr.Jit's pool has one thread, in which Mitsuba 3.9.1's OpenEXR reader and writer
+    wait for good (an envmap, a texture, the CLI's output): ``import bdpt_jit`` gives the pool
+    two threads (bdpt_jit.MIN_THREADS)."""
+    env = {k: v for k, v in os.environ.items() if k != 'DRJIT_NUM_THREADS'}
+    try:
+        r = subprocess.run([sys.executable, '-c', ONE_CPU, str(tmp_path / 'one.exr')], capture_output=True,
+                           text=True, timeout=120, env=env, preexec_fn=lambda: os.sched_setaffinity(0, {0}))
+    except subprocess.TimeoutExpired:
+        pytest.fail('an .exr file written and read on one CPU: no answer in 120 s')
+    assert r.returncode == 0, r.stderr[-2000:]
+    threads, total = r.stdout.split()
+    assert int(threads) >= 2 and float(total) == 48.0
