@@ -24,7 +24,7 @@ from .jitmath import pdf_w_to_a, safe_div
 from .media import medium_at_sensor
 from .mis import EmitterDensities, MISState
 from .transport import Subpath
-from .vertex import IMPORTANCE, RADIANCE, Vertex, visibility, visible
+from .vertex import IMPORTANCE, RADIANCE, Vertex, past_emitter_shapes, visibility, visible
 
 
 def _cos(v, d):
@@ -273,7 +273,9 @@ class CameraTracer:
         film_pos, ray, beta = self.primary()
         beta_lens = beta
         beta_start = None
-        if transport.deferred(c, self.mode):
+        if c.see_through_emitters:       # (hide_emitters: the first edge passes emitter shapes)
+            si = c.sampling.intersect(past_emitter_shapes(c, ray, True), True, primary=True)
+        elif transport.deferred(c, self.mode):
             si = transport.PendingHit(c.sampling.preliminary(ray, True), c.camera.lens_point(ray))
         elif c.media is None:
             si = c.sampling.intersect(ray, True, primary=True)     # in solid angle: no edge factor

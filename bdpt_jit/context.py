@@ -66,6 +66,7 @@ class Context:
     unbounded          max_depth = -1: the light-vertex storage grows as needed
     rr_depth           edges from which Russian roulette may end a subpath
     hide_emitters      directly visible emitters hidden
+    see_through_emitters  the first camera edge and t=1 shadow rays pass emitters' shapes
     has_delta          the scene has a BSDF with a delta lobe (delta handling traced)
     refracts           the scene has a BSDF with a transmission lobe that refracts (scene_refracts)
     exact_adjoint      light vertices take connect.adjoint_eval: a BSDF perturbs its shading
@@ -130,6 +131,10 @@ class Context:
                               or (technique not in ('lt', 'pt') and scene_non_reciprocal(scene)))
         self.defensive = technique == 'lt' and self.exact_adjoint and not ad     # transport._defensive
         self.media, self.emitter_media, self.medium_stats = self.media_setup(scene, sensor, settings, technique)
+        # hide_emitters: camera rays pass emitters' shapes, as Mitsuba's `path`'s do (in scenes
+        # without media: there the first edge is sampled by distance, and the shapes stay)
+        self.see_through_emitters = (self.hide_emitters and self.media is None
+                                     and any(shape.is_emitter() for shape in scene.shapes()))
         # merges inside media by beams (beams.py: gray media only), else by balls (merge.py)
         self.beams = (self.media is not None and self.media.info.any and self.strategies.trace_merge
                       and self.media.info.gray

@@ -12,7 +12,7 @@ from .jitmath import pdf_w_to_a, safe_div
 from .media import medium_at_sensor
 from .rays import spawn_to
 from .transport import Subpath
-from .vertex import IMPORTANCE, Vertex, visibility, visible
+from .vertex import IMPORTANCE, Vertex, past_emitter_shapes, visibility, visible
 
 
 class LightTracer:
@@ -137,7 +137,11 @@ class LightTracer:
         ok &= valid & (dr.max(f) > 0)
         ray = v.spawn_to(c, c.camera.near_point(ds), mi.Normal3f(0.0), 0.0)
         et = self.camera_edge(ray, ds, v.medium_towards(ds.d), v, ok) if c.media is not None else None
-        tr = visibility(c, t1_shadow_ray(c, ray, ds, (si.p, si.n, v.err), si), ok) if et is None else et.tr
+        if c.see_through_emitters:      # camera rays pass emitters' shapes: never end on one
+            ok &= ~si.shape.is_emitter()
+            tr = visibility(c, past_emitter_shapes(c, t1_shadow_ray(c, ray, ds, (si.p, si.n, v.err), si), ok), ok)
+        else:
+            tr = visibility(c, t1_shadow_ray(c, ray, ds, (si.p, si.n, v.err), si), ok) if et is None else et.tr
         ok &= visible(tr)
         if et is None:
             pdf_cam_a = pdf_w_to_a(c.camera.pdf_w(-ds.d), dr.dot(si.n, ds.d), dr.square(ds.dist))

@@ -97,9 +97,9 @@ PARAMS = (
           'light subpath stores on average (rounded, at least 1), measured by the pilot pass.',
           minimum=-1),
     Param('hide_emitters', bool, False,
-          "Hide directly visible emitters: no emission where a camera ray meets an emitter first (an "
-          "environment seen directly is black). Mitsuba 3.9.1's `path` also lets those camera rays pass "
-          "through an area emitter's shape; here the shape stays, showing its BSDF (black without one)."),
+          "Hide directly visible emitters: camera rays pass through the shapes of emitters, as Mitsuba "
+          "3.9.1's `path` lets them, and an environment seen directly is black. In scenes with media the "
+          "shapes stay (showing their BSDF, black without one): no emission where a camera ray meets one."),
     Param('strategy_images', bool, False,
           'Also accumulate one image per (s,t) strategy, weighted and unweighted, into '
           '`integrator.strategy_images` after a render (path lengths up to 8 one by one, longer '

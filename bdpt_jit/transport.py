@@ -227,7 +227,8 @@ def deferred(ctx, mode):
     """Whether a walk carries its next vertex as a PendingHit: camera subpaths of primal
     passes without media (a light subpath's first hit is needed whole for its MIS start, and a
     differentiable pass's hits carry the edges' derivatives, gradients.py)."""
-    return PENDING_HITS and mode == RADIANCE and ctx.media is None and not ctx.ad
+    return (PENDING_HITS and mode == RADIANCE and ctx.media is None and not ctx.ad
+            and not getattr(ctx, 'see_through_emitters', False))
 
 
 def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):

@@ -13,10 +13,11 @@ import mitsuba as mi
 
 from .connect import (CTX_IMPORTANCE, CTX_RADIANCE, adjoint_correction, eval_camera_vertex, eval_light_vertex,
                       reverse_pdf_w, smooth_mask)
-from .rays import spawn, spawn_to, spawn_to_emitter
+from .rays import offset_origin, spawn, spawn_to, spawn_to_emitter
 
 RADIANCE = 'radiance'           # a camera subpath's vertex: it transports radiance
 IMPORTANCE = 'importance'       # a light subpath's vertex: it transports importance
+MAX_EMITTER_SKIPS = 16          # emitter shapes a hidden-emitter ray passes (past_emitter_shapes)
 
 
 def bsdf_context(mode):
@@ -125,6 +126,29 @@ def visibility(ctx, ray, active):
     if ctx.stats is not None:
         ctx.stats.shadow(active, blocked)
     return mi.Spectrum(dr.select(active & ~blocked, 1.0, 0.0))
+
+
+def past_emitter_shapes(ctx, ray, active):
+    """``ray`` started past the area emitters' shapes it meets first (hide_emitters: camera rays
+    see through them, as Mitsuba's `path` skips them, its skip_area_emitters; a t=1 shadow ray,
+    the same segment from the other end, passes them too). Its far end stays where it was."""
+    far = ray.o + ray.d * dr.select(ray.maxt < dr.largest(mi.Float), ray.maxt, 0.0)
+
+    def body(ray, skips, live):
+        pi = ctx.scene.ray_intersect_preliminary(ray, False, live)
+        live &= pi.is_valid() & pi.shape.is_emitter()
+        si = ctx.sampling.resolve(pi, ray, live)
+        o = offset_origin(si.p, si.n, ctx.offsets.error(si.p, si.shape), ray.d)
+        maxt = dr.select(ray.maxt < dr.largest(mi.Float), dr.dot(far - o, ray.d), ray.maxt)
+        ray.o = dr.select(live, o, ray.o)
+        ray.maxt = dr.select(live, maxt, ray.maxt)
+        live &= maxt > 0
+        return ray, skips + 1, live
+
+    ray, _, _ = dr.while_loop((mi.Ray3f(ray), mi.UInt32(0), mi.Bool(active)),
+                              lambda ray, skips, live: live & (skips < MAX_EMITTER_SKIPS), body,
+                              label='bdpt_past_emitters')
+    return ray
 
 
 def visible(tr):
