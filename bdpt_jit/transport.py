@@ -228,7 +228,7 @@ def deferred(ctx, mode):
     passes without media (a light subpath's first hit is needed whole for its MIS start, and a
     differentiable pass's hits carry the edges' derivatives, gradients.py)."""
     return (PENDING_HITS and mode == RADIANCE and ctx.media is None and not ctx.ad
-            and not getattr(ctx, 'see_through_emitters', False))
+            and not ctx.see_through_emitters)
 
 
 def walk(ctx, mis, sampler, tracer, si, ray, sub, carry):
