@@ -162,8 +162,10 @@ def channel_of(s, c):
 
 
 def mean(s):
-    """The mean over the channels of a Spectrum."""
-    return dr.mean(s, axis=0)
+    """The mean over the channels of a Spectrum. (Not dr.mean, which divides by the array's
+    whole size and so puts the wavefront's width in the kernel as a literal: a new kernel for
+    every sample count.)"""
+    return dr.sum(s, axis=0) * (1.0 / len(s))
 
 
 def interaction_at(medium, ray, active, t=0.0, coefficients=True):

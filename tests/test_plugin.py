@@ -171,6 +171,34 @@ def test_every_pass_launches_the_same_kernels():
     assert seen[0] == seen[1] == seen[2], seen
 
 
+SAME_KERNELS = [('cornell-box', {'technique': 'bdpt'}),
+                ('cornell-box', {'technique': 'vcm', 'merge_everywhere': True, 'radius': 0.01}),
+                ('cornell-box', {'technique': 'bdpt', 'light_paths': 0.5}),
+                ('fog-area', {'technique': 'bdpt'}),
+                ('fog-area', {'technique': 'vm', 'radius': 0.05})]
+
+
+@pytest.mark.parametrize('name,extra', SAME_KERNELS)
+def test_sample_counts_share_kernels(name, extra):
+    """Renders at 2 and 5 samples per pixel (one pass each) launch the same kernels by hash: no
+    sample count (nor a size made from it) is baked into the code as a literal, so that a
+    progressive render, a time budget or a cluster chunk compiles its kernels once (media.mean
+    used dr.mean, which divides by the wavefront's whole size: every scene with a medium
+    compiled again for every spp)."""
+    import drjit as dr
+    from test_media_render import SCENES
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=8) if name == 'cornell-box' else mi.load_dict(SCENES[name]())
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, **extra})
+    mi.render(scene, integrator=integ, spp=1)          # (tables built on the first render)
+    hashes = []
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for spp in (2, 5):
+            dr.kernel_history()
+            mi.render(scene, integrator=integ, spp=spp, seed=spp)
+            hashes.append({k['hash'] for k in dr.kernel_history() if k.get('type') == dr.KernelType.JIT})
+    assert hashes[0] and hashes[0] == hashes[1], f'{sorted(hashes[1] - hashes[0])} new at 5 spp'
+
+
 AOVS = 'dd:depth,pp:position,uv:uv,gn:geo_normal,nn:sh_normal,ab:albedo'
 
 
