@@ -205,7 +205,7 @@ MERGING_CACHES = "merging caches' predictions do not follow n_L (twenty-third se
     ('vcm behind delta', {'technique': 'vcm', 'radius': 0.1, 'radius_alpha': 1.0}),
     ('cache 0.25x1', {'light_paths': 0.25, 'connections': 1}),
     pytest.param('vcm cache 0.25x1', {**VCM_ALL, 'radius': 0.1, 'radius_alpha': 1.0, 'light_paths': 0.25, 'connections': 1},
-                 marks=pytest.mark.xfail(strict=True, reason=MERGING_CACHES)),
+                 marks=[pytest.mark.xfail(strict=True, reason=MERGING_CACHES), pytest.mark.slow]),     # (a known defect: not in CI)
 ])
 def test_predicted_variance_agrees_with_the_rendered(name, props):
     """Issue 22's test 3: each candidate's variance predicted from the pilots' samples agrees
