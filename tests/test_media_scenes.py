@@ -8,7 +8,12 @@ media_scenes.assert_value (image mean within 4 standard errors, 4x4 blocks and p
 t-tests Sidak-corrected at 0.01); volpath against volpathmis helpers.agreement (Welch, pixels and
 4x4 blocks, Sidak at 0.01) with a relative resolution of 1e-5 (media_scenes.FLOAT_FLOOR: the sky
 seen through empty voxels is 0.2 exactly in one integrator and 0.2 - 1e-7 in the other). 16x16
-pixels."""
+pixels.
+
+They render only Mitsuba's integrators, so they are in the slow set (`-m slow`), to run when
+media_scenes.py or Mitsuba changes: CI holds bdpt to the same analytic values, and the references
+(tests/references) stay those these checks passed with. The checks of this project's own files
+(the benchmark scenes, the quadrature's convergence, the sensor's medium) stay in CI."""
 
 import math
 
@@ -20,6 +25,7 @@ import media_scenes as ms
 from helpers import agreement, render_batches
 
 K = 16
+VALIDATION = pytest.mark.slow       # (the module docstring)
 
 
 def volpath(max_depth=-1, which='volpath', **params):
@@ -48,6 +54,7 @@ ABSORBING = [
 ]
 
 
+@VALIDATION
 @pytest.mark.parametrize('which', ['volpath', 'volpathmis'])
 @pytest.mark.parametrize('sigma_t,radius,translate', ABSORBING)
 def test_absorbing_sphere_is_exp_minus_optical_depth(which, sigma_t, radius, translate):
@@ -58,6 +65,7 @@ def test_absorbing_sphere_is_exp_minus_optical_depth(which, sigma_t, radius, tra
     ms.assert_value(b, ms.absorbing_sphere_value(sigma_t, radius), f'{which} sigma_t {sigma_t} radius {radius}')
 
 
+@VALIDATION
 def test_absorbing_sphere_thin_is_finite():
     """(h) sigma_t 1e-4 over a radius of 1: exp(-1e-4), indistinguishable from 1 at this sample
     count; held to its value within 2e-4."""
@@ -65,6 +73,7 @@ def test_absorbing_sphere_thin_is_finite():
     ms.assert_value(b, math.exp(-1e-4), 'thin', rtol=2e-4)
 
 
+@VALIDATION
 @pytest.mark.parametrize('grid', ['octants', 'single'])
 def test_absorbing_grid_matches_quadrature(grid):
     """(a, h) A heterogeneous absorbing cube with the camera at its centre, piecewise-constant
@@ -87,6 +96,7 @@ def test_absorbing_cube_quadrature_converged():
 FURNACES = ms.FURNACES + ms.STIFF_FURNACES
 
 
+@VALIDATION
 @pytest.mark.parametrize('kind,g,inside,sigma_t,radius,grid', FURNACES)
 def test_furnace_renders_the_emitters_radiance(kind, g, inside, sigma_t, radius, grid):
     """(b) Albedo 1 in a null sphere under a constant emitter of 1, max_depth -1 (no Russian
@@ -97,6 +107,7 @@ def test_furnace_renders_the_emitters_radiance(kind, g, inside, sigma_t, radius,
     ms.assert_value(b, ms.FURNACE_VALUE, f'furnace {kind} g {g} inside {inside} sigma_t {sigma_t} {grid}')
 
 
+@VALIDATION
 def test_furnace_at_finite_depth_is_darker():
     """The furnace holds only at unbounded depth: at max_depth 2 the image mean is well below 1
     (a test that would pass with a wrong depth convention is no furnace test)."""
@@ -104,6 +115,7 @@ def test_furnace_at_finite_depth_is_darker():
     assert b.mean() < 0.9
 
 
+@VALIDATION
 @pytest.mark.parametrize('which', ['volpath', 'volpathmis'])
 @pytest.mark.parametrize('sigma_t,albedo,g', [(1.0, 0.5, 0.0), (1.0, 0.5, 0.7), (3.0, 0.9, -0.5)])
 def test_single_scattering_matches_quadrature(which, sigma_t, albedo, g):
@@ -117,6 +129,7 @@ def test_single_scattering_matches_quadrature(which, sigma_t, albedo, g):
     ms.assert_value(b, val, f'{which} single scattering sigma_t {sigma_t} g {g}', mask=mask)
 
 
+@VALIDATION
 def test_single_scattering_depth_convention():
     """max_depth 1 renders exactly 0 (the point light is never seen), max_depth 3 more than
     single scattering (double scattering adds): the quadrature is the max_depth 2 image."""
@@ -137,6 +150,7 @@ AGREEMENT = [
 ]
 
 
+@VALIDATION
 @pytest.mark.parametrize('name,params,max_depth,spp', AGREEMENT)
 def test_volpath_and_volpathmis_agree(name, params, max_depth, spp):
     """(d)-(g) Mitsuba's two volumetric path tracers agree block by block: the references bdpt is
