@@ -3,6 +3,7 @@ import sys
 
 import drjit as dr
 import mitsuba as mi
+import pytest
 
 mi.set_variant('llvm_ad_rgb')
 
@@ -23,17 +24,39 @@ def render_threads():
     return share if workers > 1 and share < dr.thread_count() else None
 
 
+# renders of this many samples or more keep the whole pool: where the other worker compiles or
+# waits, a second thread nearly halves them (1.8x), and side by side two threads each lose only
+# 10% (docs/performance.md); the suite's small renders (16 x 16 pixels, up to 256 spp) take one
+LARGE_RENDER = 1 << 18
+
+
+def render_samples(scene, sensor=0, spp=0):
+    """Samples of ``mi.render(scene, sensor=sensor, spp=spp)``: pixels times spp (0 where
+    unknown)."""
+    try:
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        size = sensor.film().crop_size()
+        return int(size[0]) * int(size[1]) * int(spp or sensor.sampler().sample_count())
+    except Exception:
+        return 0
+
+
 def _with_threads(render, n):
-    """``mi.render`` on ``n`` threads, the pool restored after it: only around renders, since
-    Mitsuba 3.9.1 waits forever on any OpenEXR file (scene loading, Bitmap) with fewer than two
-    (bdpt_jit.MIN_THREADS), and a render reads or writes none. Dr.Jit's queue is synchronised
-    on both sides: resizing the pool under launched kernels crashed the process."""
-    def wrapped(*args, **kwargs):
+    """``mi.render`` on ``n`` threads unless the render is large, the pool restored after it:
+    only around renders, since Mitsuba 3.9.1 waits forever on any OpenEXR file (scene loading,
+    Bitmap) with fewer than two (bdpt_jit.MIN_THREADS), and a render reads or writes none.
+    Dr.Jit's queue is synchronised on both sides: resizing the pool under launched kernels
+    crashed the process."""
+    def wrapped(scene, *args, **kwargs):
+        sensor = args[1] if len(args) > 1 else kwargs.get('sensor', 0)
+        spp = args[5] if len(args) > 5 else kwargs.get('spp', 0)
+        if render_samples(scene, sensor, spp) >= LARGE_RENDER:
+            return render(scene, *args, **kwargs)
         before = dr.thread_count()
-        dr.sync_thread()            # (resizing the pool under queued kernels crashes)
+        dr.sync_thread()
         dr.set_thread_count(n)
         try:
-            return render(*args, **kwargs)
+            return render(scene, *args, **kwargs)
         finally:
             dr.sync_thread()
             dr.set_thread_count(before)
@@ -44,3 +67,23 @@ def _with_threads(render, n):
 _N = render_threads()
 if _N is not None:
     mi.render = _with_threads(mi.render, _N)
+
+
+# test files that never read or write an OpenEXR file (no scene, no Bitmap): their every test
+# runs on the worker's share of the CPUs, not only its renders (many small kernels)
+ONE_SHARE_FILES = {'test_mis_partition.py'}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    if _N is None or os.path.basename(str(item.fspath)) not in ONE_SHARE_FILES:
+        yield
+        return
+    before = dr.thread_count()
+    dr.sync_thread()
+    dr.set_thread_count(_N)
+    try:
+        yield
+    finally:
+        dr.sync_thread()
+        dr.set_thread_count(before)
