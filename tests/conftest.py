@@ -1,3 +1,4 @@
+import contextlib
 import os
 import sys
 
@@ -41,25 +42,32 @@ def render_samples(scene, sensor=0, spp=0):
         return 0
 
 
+@contextlib.contextmanager
+def threads(n):
+    """Dr.Jit's pool at ``n`` threads inside, restored after. Only where no OpenEXR file is read
+    or written: Mitsuba 3.9.1 waits forever on one with fewer than two threads
+    (bdpt_jit.MIN_THREADS). The queue is synchronised on both sides: resizing the pool under
+    launched kernels crashed the process."""
+    before = dr.thread_count()
+    dr.sync_thread()
+    dr.set_thread_count(n)
+    try:
+        yield
+    finally:
+        dr.sync_thread()
+        dr.set_thread_count(before)
+
+
 def _with_threads(render, n):
-    """``mi.render`` on ``n`` threads unless the render is large, the pool restored after it:
-    only around renders, since Mitsuba 3.9.1 waits forever on any OpenEXR file (scene loading,
-    Bitmap) with fewer than two (bdpt_jit.MIN_THREADS), and a render reads or writes none.
-    Dr.Jit's queue is synchronised on both sides: resizing the pool under launched kernels
-    crashed the process."""
+    """``mi.render`` on ``n`` threads unless the render is large (a render reads or writes no
+    OpenEXR file)."""
     def wrapped(scene, *args, **kwargs):
         sensor = args[1] if len(args) > 1 else kwargs.get('sensor', 0)
         spp = args[5] if len(args) > 5 else kwargs.get('spp', 0)
         if render_samples(scene, sensor, spp) >= LARGE_RENDER:
             return render(scene, *args, **kwargs)
-        before = dr.thread_count()
-        dr.sync_thread()
-        dr.set_thread_count(n)
-        try:
+        with threads(n):
             return render(scene, *args, **kwargs)
-        finally:
-            dr.sync_thread()
-            dr.set_thread_count(before)
     wrapped.__wrapped__ = render
     return wrapped
 
@@ -79,11 +87,5 @@ def pytest_runtest_call(item):
     if _N is None or os.path.basename(str(item.fspath)) not in ONE_SHARE_FILES:
         yield
         return
-    before = dr.thread_count()
-    dr.sync_thread()
-    dr.set_thread_count(_N)
-    try:
+    with threads(_N):
         yield
-    finally:
-        dr.sync_thread()
-        dr.set_thread_count(before)
