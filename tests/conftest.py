@@ -72,9 +72,20 @@ def _with_threads(render, n):
     return wrapped
 
 
+def _on_share(fn, n):
+    """``fn`` on ``n`` threads: for derivative passes, which launch kernels and read no file."""
+    def wrapped(*args, **kwargs):
+        with threads(n):
+            return fn(*args, **kwargs)
+    wrapped.__wrapped__ = fn
+    return wrapped
+
+
 _N = render_threads()
 if _N is not None:
     mi.render = _with_threads(mi.render, _N)
+    for _name in ('forward_to', 'forward_from', 'backward', 'backward_to', 'backward_from'):
+        setattr(dr, _name, _on_share(getattr(dr, _name), _N))
 
 
 # test files that never read or write an OpenEXR file (no scene, no Bitmap): their every test
