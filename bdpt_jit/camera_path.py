@@ -346,7 +346,10 @@ class CameraTracer:
         if self.lanes is not None:
             active = active & self.lanes.merge
         seg = Segment(v, ray, v.medium_towards(ray.d), self.segment_end(ray, hit), scattered, False)
-        return L + self.ps.beams.gather(self.idx, seg, active, self.film_pos), prev, prev_delta
+        # (in a branch, as the merges at vertices: behind delta vertices only, few packets gather)
+        gathered = where(self.ctx, active, lambda: self.ps.beams.gather(self.idx, seg, active, self.film_pos),
+                         'bdpt_beam_gather')
+        return L + gathered, prev, prev_delta
 
     mode = RADIANCE
     label = 'bdpt_camera_subpath'
@@ -404,7 +407,12 @@ class CameraTracer:
                 merge_mask = merge_mask & ~v.in_medium
             if self.lanes is not None:    # per-pixel counts: merges where the pixel's map has them
                 merge_mask = merge_mask & self.lanes.merge
-            L = L + ps.merger.gather(self.idx, v, sub, smooth & merge_mask, self.film_pos)
+            # in a branch: where few lanes merge (the default merge set, behind delta vertices),
+            # most packets skip the cells' lookup (on the sun room 0.29 s of the camera kernel
+            # against 0.22 without the gather, 256 x 256 at 8 spp)
+            gathers = smooth & merge_mask
+            L = L + where(c, gathers, lambda: ps.merger.gather(self.idx, v, sub, gathers, self.film_pos),
+                          'bdpt_merge_gather')
         return sub, (L, prev, prev_delta), merge_here
 
     def after_step(self, ray, si, v, sub, carry, was_delta):

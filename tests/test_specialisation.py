@@ -196,23 +196,39 @@ def test_one_bsdf_call_for_the_evaluation_and_the_scatter(technique, monkeypatch
 
 
 @pytest.mark.parametrize('name,technique', [('all-lights.xml', 'pt'), ('all-lights.xml', 'bdpt'),
-                                            ('media/fog.xml', 'bdpt')])
+                                            ('media/fog.xml', 'bdpt'), ('caustic.xml', 'vcm'),
+                                            ('media/volumetric-caustic.xml', 'vcm')])
 def test_sparse_strategies_in_branches(name, technique, monkeypatch):
-    """camera_path.where: s=0 at emitters hit and at the environment are computed in a symbolic
-    branch that packets without such a lane skip. With the same seed the image and every
-    strategy layer (whose splats are side effects inside the branch) equal those computed in
-    every lane, to rounding."""
+    """camera_path.where: s=0 at emitters hit and at the environment, and the merges at camera
+    vertices and along camera segments in media (vcm's default merge set: behind delta vertices
+    only), are computed in a symbolic branch that packets without such a lane skip. With the
+    same seed the image and every strategy layer (whose splats are side effects inside the
+    branch) equal those computed in every lane, to rounding. vcm has no strategy layers: there
+    the merges are shown to be in the image (it changes when their gathers return 0)."""
     import bdpt_jit.camera_path as camera_path
     from helpers import scene_path
     scene = mi.load_file(scene_path(name), res=16, max_depth=4)
-    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'strategy_images': True})
+    layered = technique != 'vcm'
+    merging = {} if layered else {'radius': 0.05}       # (a radius at which a 16 x 16 image's merges find light)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': technique, 'strategy_images': layered, **merging})
     out = {}
     for sparse in (True, False):
         monkeypatch.setattr(camera_path, 'SPARSE_IF', sparse)
+        integ.merge_iteration = 0           # (each render's merges at the same radius: merge.py)
         img = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
-        out[sparse] = img, {k: {kind: np.array(v) for kind, v in d.items()} for k, d in integ.strategy_images.items()}
+        out[sparse] = img, ({k: {kind: np.array(v) for kind, v in d.items()} for k, d in integ.strategy_images.items()}
+                            if layered else {})
     scale = out[False][0].max()
     np.testing.assert_allclose(out[True][0], out[False][0], rtol=1e-5, atol=1e-6 * scale)
+    if not layered:
+        from bdpt_jit.beams import BeamGather
+        from bdpt_jit.merge import Merger
+        monkeypatch.setattr(Merger, 'gather', lambda self, idx, v, sub, active, film_pos=None: mi.Spectrum(0.0))
+        monkeypatch.setattr(BeamGather, 'gather', lambda self, idx, seg, active, film_pos=None: mi.Spectrum(0.0))
+        integ.merge_iteration = 0
+        without = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
+        assert np.abs(without - out[True][0]).max() > 1e-3 * scale
+        return
     assert out[True][1].keys() == out[False][1].keys()
     assert any(k.startswith('s0_') and out[True][1][k]['weighted'].max() > 0 for k in out[True][1]), list(out[True][1])
     for k, layers in out[True][1].items():
