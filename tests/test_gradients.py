@@ -81,6 +81,16 @@ def test_image_is_linear_in_emission_forward(name, technique):
     assert_linear_in_emission(load(name), {'type': 'bdpt', 'max_depth': 5, 'technique': technique}, name)
 
 
+@pytest.mark.parametrize('technique', ['bdpt', 'lt'])
+def test_image_is_linear_in_emission_with_emitters_hidden(technique):
+    """hide_emitters: the derivative passes hide the directly visible emitter as the primal
+    does (camera rays pass its shape, no s=0 at the first vertex, no splat of light vertex 0):
+    d image / d s equals the image without the light seen directly. Planted: the derivative pass
+    not hiding it fails (the Cornell box's light is in view)."""
+    assert_linear_in_emission(load('cornell-box.xml'), {'type': 'bdpt', 'max_depth': 5, 'technique': technique,
+                                                        'hide_emitters': True}, 'hide_emitters')
+
+
 def assert_linear_in_emission(scene, integrator, what):
     """Every emitted value scaled by s: the forward derivative d image / d s at s = 1 equals the
     image (the same samples: seed_grad of the differentiable pass, seed of the primal), every
