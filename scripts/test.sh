@@ -17,4 +17,6 @@ if [ "$workers" = "0" ] || [ "$workers" = "1" ]; then
 fi
 # --max-worker-restart 0: a worker that dies ends the run with its test named (pytest-xdist 3.8
 # replaces a dead worker under --dist loadfile and can then wait forever: its issue #784)
-exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 0 "$@"
+# --no-loadscope-reorder: the files in tests/conftest.py's order (HEAVY_FILES, the longest first),
+# not xdist's (by their number of tests)
+exec .venv/bin/python -m pytest -q -n "$workers" --dist loadfile --no-loadscope-reorder --max-worker-restart 0 "$@"

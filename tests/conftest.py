@@ -100,3 +100,21 @@ def pytest_runtest_call(item):
         return
     with threads(_N):
         yield
+
+
+# The order in which pytest-xdist hands the test files to its workers (``--dist loadfile
+# --no-loadscope-reorder``, scripts/test.sh): the longest first, so that the two workers end
+# together (longest-processing-time-first scheduling). xdist's own order, by the number of tests
+# in a file, gave the few-test, long files (test_beams.py: one 45-s test) to whichever worker
+# was free near the end while the other waited. Files not listed follow, in collection order.
+# Cold seconds a file (one worker, an empty kernel cache; docs/performance.md): the order matters,
+# not the figures.
+HEAVY_FILES = ('test_media_agreement.py', 'test_media_render.py', 'test_gradients.py', 'test_compare.py',
+               'test_moments.py', 'test_mis_partition.py', 'test_beams.py', 'test_lights.py', 'test_variants.py',
+               'test_media_phase.py', 'test_light_cache.py', 'test_coverage.py', 'test_merging.py',
+               'test_agreement.py', 'test_invariants.py', 'test_stability.py')
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: k for k, name in enumerate(HEAVY_FILES)}
+    items.sort(key=lambda item: rank.get(os.path.basename(str(item.fspath)), len(HEAVY_FILES)))
