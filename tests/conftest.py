@@ -107,7 +107,7 @@ def pytest_runtest_call(item):
 # together (longest-processing-time-first scheduling). xdist's own order, by the number of tests
 # in a file, gave the few-test, long files (test_beams.py: one 45-s test) to whichever worker
 # was free near the end while the other waited. Files not listed follow, in collection order.
-# Cold seconds a file (one worker, an empty kernel cache; docs/performance.md): the order matters,
+# The first estimate of each file's cold seconds; measured in docs/performance.md (thirty-third session): the order matters,
 # not the figures.
 HEAVY_FILES = ('test_media_agreement.py', 'test_media_render.py', 'test_gradients.py', 'test_compare.py',
                'test_moments.py', 'test_mis_partition.py', 'test_beams.py', 'test_lights.py', 'test_variants.py',
