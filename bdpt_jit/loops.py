@@ -145,7 +145,12 @@ def while_once(label, objects, state, cond, body, enabled=True):
                 cause = cause.__cause__
             if cause is None:
                 raise
-            _CONSTANT[key] = (_CONSTANT[key] - cause.varies) | cause.constant
+            varies, constant = cause.varies, cause.constant
+            # (not kept: the exception's traceback holds the frames of the render that called this
+            # loop, its light store and all, in a reference cycle that only Python's garbage
+            # collector would free; a render that met it allocated fresh memory: auto.kernel_seconds)
+            cause = None
+            _CONSTANT[key] = (_CONSTANT[key] - varies) | constant
     _CONSTANT.pop(key, None)
     return dr.while_loop((objects, state), cond, body, label=label)
 

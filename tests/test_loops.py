@@ -43,6 +43,41 @@ def test_a_constant_leaf_that_starts_to_vary_is_learnt_again():
     assert np.all(x == 0) and np.all(buf.numpy() == 9) and (1,) in loops._CONSTANT[key]
 
 
+def test_learning_again_leaves_no_frames_behind(monkeypatch):
+    """A loop learnt again (while_once catches _Relearn and records once more) keeps nothing of
+    the exception: its traceback holds the frames of the render that called the loop (its light
+    store, its context) in a reference cycle that only Python's garbage collector frees. Left
+    behind, a render's first recording kept that memory until a collection, and the next render
+    allocated fresh memory: technique auto's second timing of a trial took up to 2.5 times its
+    first (docs/light-cache.md, thirty-third session). Planted: the exception kept, frames found."""
+    import gc
+    monkeypatch.setattr(loops, '_CONSTANT', {})        # every loop learnt afresh
+    scene = mi.load_file(scene_path('cornell-box.xml'), res=8, max_depth=3)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3})
+    relearnt = []
+    record = loops._record
+
+    def counted(key, *args):
+        try:
+            return record(key, *args)
+        except RuntimeError:
+            relearnt.append(key[0])
+            raise
+    monkeypatch.setattr(loops, '_record', counted)
+    gc.collect()
+    was = gc.get_debug()
+    gc.set_debug(gc.DEBUG_SAVEALL)
+    try:
+        integ.render(scene, scene.sensors()[0], seed=0, spp=1)
+        gc.collect()
+        frames = [o.f_code.co_name for o in gc.garbage if type(o).__name__ == 'frame']
+    finally:
+        gc.set_debug(was)
+        gc.garbage.clear()
+    assert relearnt, 'no loop was learnt again: the test needs one'
+    assert not frames, frames
+
+
 def test_a_state_the_loop_cannot_walk_is_loop_state_whole():
     buf = dr.zeros(mi.Float, 4)
     state = ([dr.zeros(mi.Float, 4)], dr.zeros(mi.UInt32, 4))     # a list: not walked
