@@ -148,7 +148,8 @@ def while_once(label, objects, state, cond, body, enabled=True):
             varies, constant = cause.varies, cause.constant
             # (not kept: the exception's traceback holds the frames of the render that called this
             # loop, its light store and all, in a reference cycle that only Python's garbage
-            # collector would free; a render that met it allocated fresh memory: auto.kernel_seconds)
+            # collector would free; the next render then allocated fresh memory: docs/light-cache.md,
+            # thirty-third session)
             cause = None
             _CONSTANT[key] = (_CONSTANT[key] - varies) | constant
     _CONSTANT.pop(key, None)

@@ -106,13 +106,14 @@ def pytest_runtest_call(item):
 # --no-loadscope-reorder``, scripts/test.sh): the longest first, so that the two workers end
 # together (longest-processing-time-first scheduling). xdist's own order, by the number of tests
 # in a file, gave the few-test, long files (test_beams.py: one 45-s test) to whichever worker
-# was free near the end while the other waited. Files not listed follow, in collection order.
-# The first estimate of each file's cold seconds; measured in docs/performance.md (thirty-third session): the order matters,
-# not the figures.
-HEAVY_FILES = ('test_media_agreement.py', 'test_media_render.py', 'test_gradients.py', 'test_compare.py',
-               'test_moments.py', 'test_mis_partition.py', 'test_beams.py', 'test_lights.py', 'test_variants.py',
-               'test_media_phase.py', 'test_light_cache.py', 'test_coverage.py', 'test_merging.py',
-               'test_agreement.py', 'test_invariants.py', 'test_stability.py')
+# was free near the end while the other waited. Files not listed (under 30 s each) follow, in
+# collection order. By their cold seconds in one run (docs/performance.md, thirty-third session:
+# a file's figure depends on what the other worker compiled before it).
+HEAVY_FILES = ('test_gradients.py', 'test_media_agreement.py', 'test_lights.py', 'test_coverage.py',
+               'test_media_render.py', 'test_variants.py', 'test_mis_partition.py', 'test_stability.py',
+               'test_moments.py', 'test_light_cache.py', 'test_beams.py', 'test_specialisation.py',
+               'test_compare.py', 'test_cluster.py', 'test_agreement.py', 'test_media_phase.py', 'test_fuzz.py',
+               'test_offsets.py', 'test_cli.py')
 
 
 def pytest_collection_modifyitems(config, items):
