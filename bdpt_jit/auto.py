@@ -68,6 +68,7 @@ TIMED_MERGING = ((1.0, 1),)               # the merging cache whose time is meas
 CLOSE = 2.0                     # a runner-up within this factor of the best's efficiency: both timed again
 PREFER_PT = 1.1                 # a bidirectional candidate is chosen over pt only if this many times as efficient
 TIMINGS = 3                     # the most trial renders a candidate's time is the least of
+ONE_TIMING_S = 0.05             # a configuration's first trial render in a process whose kernels ran this long counts alone
 SETTLED = 1.1                   # a candidate whose two least timings are within this factor is not timed again
 REDECIDE = 16.0                 # the render decides again once it has run this many times as long as
                                 # its decisions so far took, then 16 times as long, ... (segments)
@@ -213,14 +214,16 @@ _WARM = set()       # the trial renders (settings, crop, spp) run once in this p
 def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     """The candidate's seconds per sample per pixel (``make(settings)``: an integrator): its
     kernels' time in a render of ``spp`` (trial_spp), the least over its timings. The first
-    trial render of a configuration, scene and size in a process is two timings: a kernel's
-    first run in a fresh process took up to twice the time of later ones (the caustic scene at
-    128 x 128 after the pilot: bdpt 0.0236 against 0.0125 s a spp, vcm 0.0355 against 0.0180,
-    the light vertex cache 1 x 4 alike), which chose the caches and pt over them in one-shot
-    renders (the command's). That first run was untimed until the twenty-first session; but a
-    later run is as often the slow one (the caustic at 128 x 128, one process: first over second
-    0.52-2.06 in 9 configurations; veach-bidir at 256 x 256: 0.61-1.84), so both count, the
-    least is the time, and two that agree settle it (``settled``: no re-timing in a close call)."""
+    trial render of a configuration, scene and size in a process is two timings where its
+    kernels ran less than ONE_TIMING_S: a short kernel's first run in a fresh process took up to
+    twice the time of later ones (the caustic at 128 x 128, 10-25 ms a render: the cache 1 x 1
+    23 then 10 ms, 26 then 12), which chose the caches and pt over them in one-shot renders (the
+    command's); and a later run is as often the slow one, so both count, the least is the time,
+    and two that agree settle it (``settled``: no re-timing in a close call). A longer first
+    render counts alone: since the reference cycle of the thirty-third session is gone the two
+    agree there (veach-bidir at 256 x 256 in fresh processes, 35-750 ms a render: second over
+    first 0.79-1.1, the merging cache's 0.79-0.84), and the second cost a fresh process's
+    decision 1.3 s of 4.6-6.9."""
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
     key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
@@ -230,7 +233,10 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
         add_image(trial, integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp), spp)
     if key not in _WARM:
         _WARM.add(key)
-        add_timing(trial, kernel_seconds(render) / spp)
+        first = kernel_seconds(render)
+        add_timing(trial, first / spp)
+        if first >= ONE_TIMING_S:
+            return
     add_timing(trial, kernel_seconds(render) / spp)
 
 

@@ -839,6 +839,27 @@ def test_a_trial_s_first_render_is_two_timings(monkeypatch):
     assert next(times, None) is None
 
 
+def test_a_long_first_trial_render_is_one_timing(monkeypatch):
+    """auto.time_trial: a configuration's first trial render whose kernels ran at least
+    auto.ONE_TIMING_S counts alone (one render, its time that timing, nothing settled); one just
+    under it is two, as above. Planted: every first render two (the old rule), fails."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, '_WARM', set())
+    long_s = auto.ONE_TIMING_S * 1.5
+    times = iter([long_s, auto.ONE_TIMING_S * 0.99, 0.02])
+    monkeypatch.setattr(auto, 'kernel_seconds', lambda render: next(times))
+    scene = mi.load_dict(_sky_only(8, 8))
+    make = lambda settings: None        # noqa: E731 (not rendered: kernel_seconds is the stub)
+    slow = auto.Trial('bdpt', {}, (1.0, 1.0, 0.0))
+    auto.time_trial(make, slow, scene, scene.sensors()[0], 0, 2)
+    assert slow.timings == 1 and slow.seconds == pytest.approx(long_s / 2) and slow.second is None
+    assert not auto.settled(slow)
+    short = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    auto.time_trial(make, short, scene, scene.sensors()[0], 0, 2)
+    assert short.timings == 2 and short.seconds == pytest.approx(0.01)
+    assert next(times, None) is None
+
+
 def test_each_trial_render_has_a_seed_of_its_own(monkeypatch):
     """auto.time_trial / trial_seed: a trial's renders (the untimed first one included) have
     seeds of their own, none a pilot's (seed + TRIAL_SEED + 2 k), so that the images the
