@@ -54,7 +54,8 @@ class BeamGrid:
     lo, hi          the bounding box of the light vertices' balls (width-1 arrays; empty: lo > hi)
     mask            table size - 1 (a power of two), opaque
     start           per bucket: its first entry (and the next bucket's: its end)
-    slots           the store's slots in bucket order"""
+    slots           the store's slots in bucket order
+    points          and their positions, with their iteration in w (BeamGather.candidate)"""
 
     def __init__(self, scene, store, schedule):
         self.store, self.schedule = store, schedule
@@ -132,9 +133,13 @@ class BeamGrid:
             dr.eval(places[-1])
         self.start = dr.prefix_sum(counts)
         self.slots = dr.zeros(mi.UInt32, max(8 * n, 1))
+        self.points = dr.zeros(mi.Vector4f, max(8 * n, 1))
+        point = mi.Vector4f(p.x, p.y, p.z, mi.Float(group))
         for b, ok, place in zip(buckets, use, places):
-            dr.scatter(self.slots, slot, dr.gather(mi.UInt32, self.start, b, ok) + place, ok)
-        dr.eval(self.start, self.slots)
+            at = dr.gather(mi.UInt32, self.start, b, ok) + place
+            dr.scatter(self.slots, slot, at, ok)
+            dr.scatter(self.points, point, at, ok)
+        dr.eval(self.start, self.slots, self.points)
 
     def cell(self, p):
         return mi.Vector3i(dr.floor((p - self.origin) * dr.rcp(self.size)))
@@ -268,15 +273,17 @@ class BeamGather:
         st = g.store
         group, r2 = group_r2
         o, d = seg.ray.o, seg.ray.d
-        slot = dr.gather(mi.UInt32, g.slots, k, active)
-        level = slot // st.n_opaque
-        ok = active & (g.schedule.group(slot - level * st.n_opaque) == group)
-        first = dr.gather(mi.Vector4f, st.v, slot * st.record.packets(), ok)      # 'p' leads every record
+        # the grid's own copy of the positions in bucket order (consecutive words), then the
+        # slot of an entry that counts only
+        first = dr.gather(mi.Vector4f, g.points, k, active)
+        ok = active & (first.w == mi.Float(group))
         y_p = mi.Point3f(first.x, first.y, first.z)
         s = dr.dot(y_p - o, d)
         ok &= (s >= interval[0]) & (s < interval[1]) & (s >= 0.0) & (s < seg.t_end)
         q = o + d * s
         ok &= dr.squared_norm(y_p - q) <= r2
+        slot = dr.gather(mi.UInt32, g.slots, k, ok)
+        level = slot // st.n_opaque
         return ok, slot, level, y_p, (q, s)
 
     @dr.syntax

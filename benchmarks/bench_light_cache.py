@@ -5,7 +5,8 @@ relative MSE at equal time against a reference rendered by ``path`` (``--ref-int
     python benchmarks/bench_light_cache.py --scene ../shared/scenes/smallvcm-box/smallvcm-box.xml \\
         --res 128 --max-depth 10 --budget 8 --configs path,pt,classic,1:2,0.25:1,1:1,2:4
 
-A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1);
+A configuration ``R:C`` is ``light_paths=R, connections=C`` (``R:auto`` leaves connections -1;
+any name takes parameters after ``@``: ``vcm@radius=0.01``);
 ``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``vcm`` and ``vcm_all`` vertex
 merging (behind delta vertices; everywhere), ``vcm:R:C`` and ``vcm_all:R:C`` their light vertex
 caches, ``auto`` technique auto (its
@@ -46,7 +47,18 @@ def load(path, res, max_depth, integrator, defines=()):
 
 
 def contestant(name, max_depth):
-    """The integrator dict of a configuration name."""
+    """The integrator dict of a configuration name, with the parameters after an ``@``
+    (``vcm@radius=0.01+radius_alpha=0.9``: numbers as floats, else strings)."""
+    if '@' in name:
+        name, extra = name.split('@', 1)
+        out = contestant(name, max_depth)
+        for item in extra.split('+'):
+            key, _, value = item.partition('=')
+            try:
+                out[key] = float(value)
+            except ValueError:
+                out[key] = value
+        return out
     if name == 'path':
         return {'type': 'path', 'max_depth': max_depth}
     if name == 'pt':
