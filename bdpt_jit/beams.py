@@ -71,6 +71,7 @@ class BeamGrid:
         p = mi.Point3f(first.x, first.y, first.z)
         group = schedule.group(idx)
         r = schedule.radius(group)
+        dr.eval(p, group, r)        # (once: the bounds' reductions and the sort's kernels read them)
         valid = dr.full(mi.Bool, not empty, dr.width(slot))
         self.bounds(p, r, valid)
         self.size = dr.opaque(mi.Float, self.cell_size(bbox, schedule, dr.width(slot)))
@@ -126,6 +127,7 @@ class BeamGrid:
                 ok &= ~(u & (e == b))
             buckets.append(b)
             use.append(ok)
+        dr.eval(buckets, use)       # (in one kernel; each count below then reads them)
         counts = dr.zeros(mi.UInt32, size + 1)
         places = []
         for b, ok in zip(buckets, use):     # (each result read once: evaluated one by one)

@@ -105,7 +105,7 @@ class PhotonGrid:
             first = dr.gather(mi.Vector4f, store.v, slot * store.record.packets())  # 'p' leads every record
             group = schedule.group(idx)
             bucket = self.bucket(self.cell(mi.Point3f(first.x, first.y, first.z), group), group)
-            dr.eval(bucket)
+            dr.eval(bucket, first, group)        # (the sort's last kernel reads them again)
             place = dr.scatter_inc(counts, bucket)                   # place within the bucket
             dr.eval(place)                                            # (a result read once only)
         # exclusive: bucket b holds entries start[b] .. start[b + 1] - 1 (one array: a query's
