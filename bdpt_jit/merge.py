@@ -266,8 +266,9 @@ class Merger:
         # 0.40 s at 2 spp, the skip loop alone 0.84, the sorted positions alone 0.65)
         while dr.hint(active & (e < totals[8]), label='bdpt_merge'):
             while dr.hint(active & (e < totals[8]) & ~self.near(self.entry(e, starts, totals), si.p, group,
-                                                                radius2, active), label='bdpt_merge_skip'):
-                e += 1
+                                                                radius2, active & (e < totals[8])),
+                          label='bdpt_merge_skip'):
+                e += 1          # (an entry past the query's last is not read: its index may lie past the grid's)
             value, terms = self.merge_one(self.entry(e, starts, totals), v, sub, group, radius2,
                                           active & (e < totals[8]), inv_factor, tap)
             total += value
