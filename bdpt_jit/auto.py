@@ -222,7 +222,7 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     and two that agree settle it (``settled``: no re-timing in a close call). A longer first
     render counts alone: since the reference cycle of the thirty-third session is gone the two
     agree there (veach-bidir at 256 x 256 in fresh processes, 35-750 ms a render: second over
-    first 0.79-1.1, the merging cache's 0.79-0.84), and the second cost a fresh process's
+    first 0.74-1.1, the merging cache's 0.74-0.84), and the second cost a fresh process's
     decision 1.3 s of 4.6-6.9."""
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
