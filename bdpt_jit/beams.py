@@ -55,7 +55,7 @@ class BeamGrid:
     mask            table size - 1 (a power of two), opaque
     start           per bucket: its first entry (and the next bucket's: its end)
     slots           the store's slots in bucket order
-    points          and their positions, with their iteration in w (BeamGather.candidate)"""
+    points          and their positions, with their iteration's bits in w (BeamGather.candidate)"""
 
     def __init__(self, scene, store, schedule):
         self.store, self.schedule = store, schedule
@@ -136,7 +136,7 @@ class BeamGrid:
         self.start = dr.prefix_sum(counts)
         self.slots = dr.zeros(mi.UInt32, max(8 * n, 1))
         self.points = dr.zeros(mi.Vector4f, max(8 * n, 1))
-        point = mi.Vector4f(p.x, p.y, p.z, mi.Float(group))
+        point = mi.Vector4f(p.x, p.y, p.z, dr.reinterpret_array(mi.Float, mi.UInt32(group)))
         for b, ok, place in zip(buckets, use, places):
             at = dr.gather(mi.UInt32, self.start, b, ok) + place
             dr.scatter(self.slots, slot, at, ok)
@@ -278,7 +278,7 @@ class BeamGather:
         # the grid's own copy of the positions in bucket order (consecutive words), then the
         # slot of an entry that counts only
         first = dr.gather(mi.Vector4f, g.points, k, active)
-        ok = active & (first.w == mi.Float(group))
+        ok = active & (dr.reinterpret_array(mi.UInt32, first.w) == group)     # (the iteration's bits)
         y_p = mi.Point3f(first.x, first.y, first.z)
         s = dr.dot(y_p - o, d)
         ok &= (s >= interval[0]) & (s < interval[1]) & (s >= 0.0) & (s < seg.t_end)

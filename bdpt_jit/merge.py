@@ -85,7 +85,7 @@ class PhotonGrid:
     mask            table size - 1 (a power of two), opaque
     start           per bucket: its first entry (and the next bucket's: its end)
     slots           the store's slots in bucket order
-    points          and their positions, with their iteration in w (Merger.near)"""
+    points          and their positions, with their iteration's bits in w (Merger.near)"""
 
     def __init__(self, scene, store, schedule):
         slot = store.stored_slots()
@@ -117,7 +117,7 @@ class PhotonGrid:
         if n > 0:
             at = dr.gather(mi.UInt32, self.start, bucket) + place
             dr.scatter(self.slots, slot, at)
-            dr.scatter(self.points, mi.Vector4f(first.x, first.y, first.z, mi.Float(group)), at)
+            dr.scatter(self.points, mi.Vector4f(first.x, first.y, first.z, dr.reinterpret_array(mi.Float, group)), at)
         dr.eval(self.start, self.slots, self.points)
 
     def inv_cell(self, group):
@@ -186,7 +186,8 @@ class Merger:
         entries are consecutive words there; the store's records lie wherever their subpaths
         put them); merge_one tests it again."""
         q = dr.gather(mi.Vector4f, self.grid.points, k, active)
-        return active & (q.w == mi.Float(group)) & (dr.squared_norm(mi.Point3f(q.x, q.y, q.z) - p) <= radius2)
+        same = dr.reinterpret_array(mi.UInt32, q.w) == group     # (its bits: exact for any iteration count)
+        return active & same & (dr.squared_norm(mi.Point3f(q.x, q.y, q.z) - p) <= radius2)
 
     def merge_one(self, k, v, sub, group, radius2, active, inv_factor=None, tap=None):
         """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex, or
