@@ -11,7 +11,7 @@ any name takes parameters after ``@``: ``vcm@radius=0.01``);
 merging (behind delta vertices; everywhere), ``vcm:R:C`` and ``vcm_all:R:C`` their light vertex
 caches, ``auto`` technique auto (its
 choice, the pilot and the trials, inside the budget; the choice in the last column). Each contestant renders one
-warm-up image (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
+warm-up batch (compilation; auto a render of WARM_AUTO_S seconds), then batches of ``--batch-spp`` until ``--budget`` seconds have
 passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
 as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
 single run); relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
@@ -125,6 +125,9 @@ def equal_time(scene, integ, budget, batch_spp, seed0=0):
     return acc / spp, spp, time.perf_counter() - t0
 
 
+WARM_AUTO_S = 1.0          # auto's warm-up render: seconds (prepare)
+
+
 def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
     """equal_time for technique auto, rendered as ``bdpt-jit render --time`` renders it: one
     render of 2^30 samples per pixel in passes of ``batch_spp``, stopped by its should_stop hook
@@ -151,13 +154,20 @@ def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
 
 
 def prepare(args, name):
-    """A contestant: its scene and integrator, warmed up (the first render compiles its kernels)."""
+    """A contestant: its scene and integrator, warmed up as its runs render (the first render of
+    a kernel compiles it, and a kernel is compiled for each samples per pixel of a call): one
+    batch of --batch-spp; for auto, a budgeted render of WARM_AUTO_S seconds (its decision's
+    trials and pilots, and its passes; with a 1-spp warm-up, its first run's decision took 4.7 s
+    against 2.8-2.9 s in the later ones on veach-bidir at 256 x 256)."""
     props = contestant(name, args.max_depth)
     if name == 'auto':          # passes of --batch-spp (equal_time_auto)
         props['samples_per_pass'] = args.batch_spp * args.res * args.res
     scene, integ = load(args.scene, args.res, args.max_depth, props, args.define)
     t0 = time.perf_counter()
-    dr.eval(mi.render(scene, integrator=integ, spp=1, seed=999))
+    if name == 'auto':
+        equal_time_auto(scene, props, WARM_AUTO_S, args.batch_spp, seed0=999)
+    else:
+        dr.eval(mi.render(scene, integrator=integ, spp=args.batch_spp, seed=999))
     return dict(name=name, scene=scene, integ=integ, props=props, warm=time.perf_counter() - t0,
                 rels=[], spps=[], sps=[], chosen=[])
 
