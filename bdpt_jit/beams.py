@@ -39,6 +39,7 @@ import mitsuba as mi
 from .jitmath import safe_div
 from .rays import scene_bbox
 from .media import DensityFactor, MediumVertex, interaction_at
+from . import merge
 from .merge import _PRIMES
 from .vertex import RADIANCE
 
@@ -75,8 +76,8 @@ class BeamGrid:
         valid = dr.full(mi.Bool, not empty, dr.width(slot))
         self.bounds(p, r, valid)
         self.size = dr.opaque(mi.Float, self.cell_size(bbox, schedule, dr.width(slot)))
-        size = 1               # buckets: at least four per vertex (up to 8 entries each, ~1-2 typically)
-        while size < max(4 * dr.width(slot), 1):
+        size = 1               # buckets: merge.BUCKETS per vertex at least (up to 8 entries each, ~1-2 typically)
+        while size < max(merge.BUCKETS * dr.width(slot), 1):
             size *= 2
         self.mask = dr.opaque(mi.UInt32, size - 1)
         self.sort(p, r, group, slot, valid, size)
@@ -136,7 +137,7 @@ class BeamGrid:
         self.start = dr.prefix_sum(counts)
         self.slots = dr.zeros(mi.UInt32, max(8 * n, 1))
         self.points = dr.zeros(mi.Vector4f, max(8 * n, 1))
-        point = mi.Vector4f(p.x, p.y, p.z, dr.reinterpret_array(mi.Float, mi.UInt32(group)))
+        point = mi.Vector4f(p.x, p.y, p.z, dr.reinterpret_array(mi.Float, group))
         for b, ok, place in zip(buckets, use, places):
             at = dr.gather(mi.UInt32, self.start, b, ok) + place
             dr.scatter(self.slots, slot, at, ok)

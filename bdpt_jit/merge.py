@@ -111,8 +111,8 @@ class PhotonGrid:
         # exclusive: bucket b holds entries start[b] .. start[b + 1] - 1 (one array: a query's
         # two reads of a bucket share a cache line)
         self.start = dr.prefix_sum(counts)
-        # and in bucket order, each entry's position and iteration (its group as a float in w): a
-        # query tests the entries of its cells reading consecutive words, not the store's records
+        # and in bucket order, each entry's position and iteration (its bits in w): a query tests
+        # the entries of its cells reading consecutive words, not the store's records
         self.points = dr.zeros(mi.Vector4f, max(n, 1))
         if n > 0:
             at = dr.gather(mi.UInt32, self.start, bucket) + place
@@ -184,31 +184,26 @@ class Merger:
         """Whether entry ``k`` of the sorted grid is a light vertex of iteration ``group`` within
         the radius of ``p``, from the grid's own copy of the positions in bucket order (a query's
         entries are consecutive words there; the store's records lie wherever their subpaths
-        put them); merge_one tests it again."""
+        put them)."""
         q = dr.gather(mi.Vector4f, self.grid.points, k, active)
         same = dr.reinterpret_array(mi.UInt32, q.w) == group     # (its bits: exact for any iteration count)
         return active & same & (dr.squared_norm(mi.Point3f(q.x, q.y, q.z) - p) <= radius2)
 
-    def merge_one(self, k, v, sub, group, radius2, active, inv_factor=None, tap=None):
-        """Entry ``k`` of the sorted grid merged with camera vertex ``v`` (vertex.Vertex, or
-        media_path.PathVertex) of the camera subpath ``sub`` of iteration ``group``
-        (unnormalised); ``inv_factor``: mis.MIS.weight_merge's (scenes with media); ``tap``:
-        (film position, scale to the film) of technique auto's pilot, whose moment film takes
-        each merge (moments.py). Returns (the merge's value, the moment film's per-candidate
-        terms of it: none without ``tap``)."""
+    def merge_one(self, k, v, sub, active, inv_factor=None, tap=None):
+        """Entry ``k`` of the sorted grid, a light vertex of the camera vertex's iteration within
+        its radius where ``active`` (``near``), merged with camera vertex ``v`` (vertex.Vertex,
+        or media_path.PathVertex) of the camera subpath ``sub`` (unnormalised); ``inv_factor``:
+        mis.MIS.weight_merge's (scenes with media); ``tap``: (film position, scale to the film)
+        of technique auto's pilot, whose moment film takes each merge (moments.py). Returns (the
+        merge's value, the moment film's per-candidate terms of it: none without ``tap``)."""
         c, g = self.ctx, self.grid
         si = v.si
         st = g.store
         slot = dr.gather(mi.UInt32, g.slots, k, active)
         record = st.record
         level = slot // st.n_opaque
-        ok = active & (g.schedule.group(slot - level * st.n_opaque) == group)   # the same iteration
-        # the position first ('p' leads every record): ~4/5 of the candidates in the 8 cells lie
-        # outside the radius, and their masked-off lanes then read nothing more
-        first = dr.gather(mi.Vector4f, st.v, slot * record.packets(), ok)
-        ok &= dr.squared_norm(mi.Point3f(first.x, first.y, first.z) - si.p) <= radius2
-        rec = record.load(st.v, slot, ok)
-        ok &= rec.depth_at(level) + sub.depth <= c.max_depth_edges
+        rec = record.load(st.v, slot, active)
+        ok = active & (rec.depth_at(level) + sub.depth <= c.max_depth_edges)
         if c.media is not None:                     # a surface with a surface, a medium vertex with one of its medium
             ok &= (rec.in_medium != 0) == v.in_medium
             ok &= ~v.in_medium | (rec.medium == v.medium)
@@ -270,8 +265,8 @@ class Merger:
                                                                 radius2, active & (e < totals[8])),
                           label='bdpt_merge_skip'):
                 e += 1          # (an entry past the query's last is not read: its index may lie past the grid's)
-            value, terms = self.merge_one(self.entry(e, starts, totals), v, sub, group, radius2,
-                                          active & (e < totals[8]), inv_factor, tap)
+            value, terms = self.merge_one(self.entry(e, starts, totals), v, sub, active & (e < totals[8]),
+                                          inv_factor, tap)
             total += value
             sums = tuple(sums[q] + terms[q] for q in range(n_cand))
             squares = tuple(squares[q] + terms[q] * terms[q] for q in range(n_cand))

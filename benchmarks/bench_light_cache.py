@@ -48,16 +48,14 @@ def load(path, res, max_depth, integrator, defines=()):
 
 def contestant(name, max_depth):
     """The integrator dict of a configuration name, with the parameters after an ``@``
-    (``vcm@radius=0.01+radius_alpha=0.9``: numbers as floats, else strings)."""
+    (``vcm@radius=0.01+connections=2+merge_everywhere=true``: integers, numbers, true/false,
+    else strings)."""
     if '@' in name:
         name, extra = name.split('@', 1)
         out = contestant(name, max_depth)
         for item in extra.split('+'):
             key, _, value = item.partition('=')
-            try:
-                out[key] = float(value)
-            except ValueError:
-                out[key] = value
+            out[key] = parameter_value(value)
         return out
     if name == 'path':
         return {'type': 'path', 'max_depth': max_depth}
@@ -76,6 +74,16 @@ def contestant(name, max_depth):
     ratio, c = name.split(':')
     return {'type': 'bdpt', 'max_depth': max_depth, 'light_paths': float(ratio),
             'connections': -1 if c == 'auto' else int(c)}
+
+
+def parameter_value(text):
+    """A parameter's value from its text: an int, a float, a bool (true/false), else the text."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {'true': True, 'false': False}.get(text.lower(), text)
 
 
 def reference(args):

@@ -435,3 +435,24 @@ def test_merges_read_nothing_out_of_bounds(scene_file, capfd):
     err = capfd.readouterr().err
     bad = [line for line in err.splitlines() if 'out-of-bounds' in line and 'film.py' not in line]
     assert not bad, bad[:3]
+
+
+@pytest.mark.parametrize('scene_file', ['caustic.xml', 'media/volumetric-caustic.xml'])
+def test_a_query_merges_its_own_iteration_only_when_all_share_a_bucket(scene_file, monkeypatch):
+    """The grids hash each entry's iteration with its cell, so a pass's iterations meet in a
+    bucket only where hashes collide; merge.Merger.near and beams.BeamGather.candidate then keep
+    the query's own (the iteration in the grids' copy of the positions). With one bucket for all
+    (merge.BUCKETS tiny: every iteration's entries in it) the image is the one with the usual
+    table, up to the order of the additions. Planted: the iteration test left out of either,
+    fails (light vertices of the pass's other iterations merged too)."""
+    import os
+    from bdpt_jit import merge
+    scene = mi.load_file(os.path.join(os.path.dirname(__file__), '..', 'scenes', scene_file), res=8, max_depth=4)
+    images = []
+    for buckets in (merge.BUCKETS, 1e-9):
+        monkeypatch.setattr(merge, 'BUCKETS', buckets)
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'vcm', 'merge_everywhere': True,
+                              'radius': 0.1})
+        images.append(np.array(mi.render(scene, integrator=integ, spp=8, seed=3), np.float64))
+    assert np.abs(images[0]).max() > 0
+    np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-6 * np.abs(images[0]).max())
