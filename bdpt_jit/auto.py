@@ -11,8 +11,9 @@ SIGGRAPH 2022) and each candidate's measured time.
    one-sample estimate, V = M - sum_t I_t^2 / n_t (moments.MomentFilm), and the share of the image
    no strategy of the candidate samples (path tracing misses what only light subpaths reach: a
    caustic from a point light, a directional area emitter). Where merging candidates are
-   offered the pilot merges everywhere (vcm, merge_everywhere); a candidate merging behind
-   delta vertices only (BEHIND_DELTA) has a pilot of its own merge set.
+   offered the pilot merges everywhere (vcm, merge_everywhere) and predicts the candidate merging
+   behind delta vertices only (BEHIND_DELTA) too (moments.FamilyMIS's ``split``), which in a
+   scene with media has a pilot of its own merge set.
 2. The cost: first pt and the cheapest bidirectional candidate (``probe``) are timed, and where
    no candidate could be chosen over pt even at the probe's time, pt is (``clear_pt``). Else
    the classic estimator, vcm's and three caches are timed where a candidate they decide could
@@ -92,6 +93,7 @@ class Trial:
         self.merges = counts[2] > 0     # it merges (technique vcm, everywhere unless behind_delta)
         self.behind_delta = settings.get('technique') == 'vcm' and not settings.get('merge_everywhere', False)
         #                                 it merges behind delta vertices only (vcm's default merge set)
+        self.own_pilot = False          # behind_delta and predicted by a pilot of its own merge set (``pilot``)
         self.seconds = None             # seconds per sample per pixel: measured (timed) or modelled
         self.timed = False              # its seconds measured by trial renders (not the cost model)
         self.timings = 0                # how many: its seconds are their minimum (a second job's load only adds)
@@ -167,6 +169,7 @@ def candidates(ctx, vpp, vpp_merging=None):
         out.append(Trial('vcm', vcm, (1.0, 1.0, 1.0)))
     if merging and ctx.has_delta:       # vcm's own merge set: merges behind delta vertices only
         out.append(Trial(BEHIND_DELTA, {'technique': 'vcm'}, (1.0, 1.0, 1.0)))
+        out[-1].own_pilot = ctx.media is not None       # (with media: a pilot of its own, ``pilot``)
     if not ctx.strategies.trace_connect or mi.is_spectral:
         return out
     for m in ((False, True) if merging else (False,)):
@@ -292,7 +295,7 @@ def denominator(trials, rounds=3):
     and that pixel's V / I^2 decided every candidate's v; nor the images of a heavy-tailed
     candidate in full, mostly too low (hence the weights)."""
     first = next(tr for tr in trials if tr.pilot_image is not None)
-    merging = any(tr.merges and not tr.behind_delta for tr in trials)       # the pilot was vcm's
+    merging = any(tr.merges and not tr.behind_delta for tr in trials)       # the (first) pilot was vcm's
     pilot = next((tr for tr in trials if tr.name == ('vcm' if merging else 'bdpt')), first)
     timed = [tr for tr in trials if tr.images]
     v = {id(tr): tr.own_var for tr in trials}
@@ -419,22 +422,36 @@ def pilot(make, trials, scene, sensor, seed, index=0):
     misses (moments.MomentFilm.estimates), pooled with the earlier pilots' (their mean: each
     estimates the same quantities from independent samples)."""
     trials = [tr for tr in trials if tr.parts is None]          # (per-pixel candidates: from these)
-    for group, behind_delta in (([tr for tr in trials if not tr.behind_delta], False),
-                                ([tr for tr in trials if tr.behind_delta], True)):
+    for group, behind_delta in (([tr for tr in trials if not tr.own_pilot], False),
+                                ([tr for tr in trials if tr.own_pilot], True)):
         if group:
             pilot_group(make, group, behind_delta, scene, sensor, seed + TRIAL_SEED + 2 * index)
     normalise(trials)
 
 
+def pilot_counts(trial, split):
+    """The counts a pilot predicts ``trial`` with: (n_c, n_lt, n_m), or where the pilot predicts
+    both merge sets (``split``) (n_c, n_lt, n_m behind delta vertices, n_m elsewhere)."""
+    if not split:
+        return trial.counts
+    n_c, n_lt, n_m = trial.counts
+    return n_c, n_lt, n_m, 0.0 if trial.behind_delta else n_m
+
+
 def pilot_group(make, trials, behind_delta, scene, sensor, seed):
     """``pilot`` for the trials of one merge set (``behind_delta``: vcm's own, merges behind
-    delta vertices only; else everywhere where a trial merges): one pilot render."""
+    delta vertices only; else everywhere where a trial merges): one pilot render. A pilot
+    merging everywhere predicts the trials merging behind delta vertices too (moments.FamilyMIS's
+    ``split``: their samples shared, where two pilots' independent estimates of the heavy-tailed
+    caustics chose the merging caches over vcm on the sun room, docs/light-cache.md), save in
+    scenes with media (``own_pilot``)."""
     merging = any(tr.merges for tr in trials)
+    split = not behind_delta and any(tr.behind_delta for tr in trials)
     settings = {'mis': 'balance'}
     if merging:
         settings.update(technique='vcm', merge_everywhere=not behind_delta)
     integ = make(settings)
-    integ.moment_counts = [tr.counts for tr in trials]
+    integ.moment_counts = [pilot_counts(tr, split) for tr in trials]
     spp = pilot_spp(sensor)
     integ.render(scene, sensor, seed=seed, spp=spp)
     film = integ.moment_film

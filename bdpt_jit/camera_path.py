@@ -292,7 +292,7 @@ class CameraTracer:
             c.stats.ray('camera', dr.full(mi.Bool, True, n), valid)
         self.film_pos = film_pos
         L = mi.Spectrum(0.0)
-        if self.ps.beams is not None and self.mis.merge_here_camera(False) is True:
+        if self.ps.beams is not None and self.mis.merge_offered(False) is True:
             L += self.first_beam(ray, si, beta_lens, film_pos)
         if c.strategies.trace_env:
             L += self.strategy_s0_env(ray, dr.zeros(mi.Interaction3f, n), mi.UInt32(1), beta,
@@ -341,7 +341,7 @@ class CameraTracer:
         """Merges along the segment from ``v`` to ``hit`` (beams.py), where a merge at a vertex
         behind ``v`` is a strategy; ``scattered``: the Subpath after the scatter at ``v``."""
         L, prev, prev_delta = carry
-        offered = self.mis.merge_here_camera(was_delta)
+        offered = self.mis.merge_offered(was_delta)
         active = scattered.active if offered is True else scattered.active & offered
         if self.lanes is not None:
             active = active & self.lanes.merge
@@ -393,7 +393,7 @@ class CameraTracer:
         sub.active = sub.active & (sub.depth + 1 <= c.max_depth_edges)     # every strategy below adds an edge
         smooth = sub.active & v.smooth(c.diffuse)
         merge_here = mis.merge_here_camera(prev_delta)   # a merge at v is a strategy (mis.py)
-        merge_mask = merge_here
+        merge_mask = mis.merge_offered(prev_delta)       # and the camera gathers there
         if c.media is not None and mis.mis_merges:       # media: relative to a surface merge
             merge_here = v.merge_factor(mis, c.media.info, merge_here)
         if c.strategies.trace_s1:
@@ -411,7 +411,7 @@ class CameraTracer:
             # most packets skip the cells' lookup (on the sun room 0.29 s of the camera kernel
             # against 0.22 without the gather, 256 x 256 at 8 spp)
             gathers = smooth & merge_mask
-            L = L + where(c, gathers, lambda: ps.merger.gather(self.idx, v, sub, gathers, self.film_pos),
+            L = L + where(c, gathers, lambda: ps.merger.gather(self.idx, v, sub, gathers, self.film_pos, merge_here),
                           'bdpt_merge_gather')
         return sub, (L, prev, prev_delta), merge_here
 

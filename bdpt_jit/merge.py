@@ -193,8 +193,9 @@ class Merger:
         """Entry ``k`` of the sorted grid, a light vertex of the camera vertex's iteration within
         its radius where ``active`` (``near``), merged with camera vertex ``v`` (vertex.Vertex,
         or media_path.PathVertex) of the camera subpath ``sub`` (unnormalised); ``inv_factor``:
-        mis.MIS.weight_merge's (scenes with media); ``tap``: (film position, scale to the film)
-        of technique auto's pilot, whose moment film takes each merge (moments.py). Returns (the
+        mis.MIS.weight_merge's (scenes with media); ``tap``: (film position, scale to the film,
+        the merge's family: ``gather``'s ``own``) of technique auto's pilot, whose moment film
+        takes each merge (moments.py). Returns (the
         merge's value, the moment film's per-candidate terms of it: none without ``tap``)."""
         c, g = self.ctx, self.grid
         si = v.si
@@ -220,19 +221,21 @@ class Merger:
         value = f * rec.beta * inv_cos
         ok &= (dr.max(value) > 0) & (dr.max(value) < dr.inf)
         l_vm = rec.d_vm if 'd_vm' in record.DRJIT_STRUCT else 0.0
-        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, inv_factor)
+        w = self.mis.weight_merge(rec.d_vcm, l_vm, sub.mis.d_vcm, sub.mis.d_vm, pdf_dir_w, pdf_rev_w, inv_factor,
+                                  True if tap is None else tap[2])
         terms = ()
         if tap is not None:
-            film_pos, scale = tap
+            film_pos, scale, _ = tap
             terms = c.moments.add(None, None, film_pos, value * (w * scale), value * scale, ok)
         return dr.select(ok, value * w, 0.0), terms
 
     @dr.syntax
-    def gather(self, idx, v, sub, active, film_pos=None):
+    def gather(self, idx, v, sub, active, film_pos=None, own=True):
         """Radiance towards the camera subpath ``sub`` of sample ``idx`` from merging at its
         vertex ``v``: the estimate over its iteration's light vertices within that iteration's
         radius, times the camera throughput (``film_pos``: the sample's, for technique auto's
-        pilot)."""
+        pilot; ``own``: the merges' term in the weights there, mis.MIS.merge_here_camera, whose
+        family the pilot's moments.FamilyMIS reads)."""
         si = v.si
         sched = self.grid.schedule
         group = sched.group(idx)
@@ -244,7 +247,7 @@ class Merger:
             norm = dr.select(v.in_medium, norm * (0.75 / r), norm)
             if self.mis.mis_merges:         # (vm: no weights)
                 inv_factor = safe_div(1.0, v.merge_factor(self.mis, self.ctx.media.info))
-        tap = None if self.ctx.moments is None else (film_pos, sub.beta * norm * self.ctx.inv_spp)
+        tap = None if self.ctx.moments is None else (film_pos, sub.beta * norm * self.ctx.inv_spp, own)
         starts, totals = self.ranges(si.p, group, active)
         total = mi.Spectrum(0.0)
         e = dr.zeros(mi.UInt32, dr.width(si.p))

@@ -102,14 +102,15 @@ class MISState:
 
 def _gate(x, ok):
     """x where ``ok`` (a mask, or True/False), else 0; x times ``ok`` where it is a factor (a
-    merge's density relative to a surface merge: merges inside media, ``MIS.merge_factor``)."""
+    merge's density relative to a surface merge: merges inside media, ``MIS.merge_factor``) or
+    a family vector (the merge's family: moments.FamilyMIS's ``split``)."""
     if ok is True:
         return x
     if ok is False:
         return 0.0 * x
-    if isinstance(ok, mi.Float):
-        return x * ok
-    return dr.select(ok, x, 0.0 * x)
+    if isinstance(ok, mi.Bool):
+        return dr.select(ok, x, 0.0 * x)
+    return x * ok       # a factor, or a family vector (moments.FamilyMIS with both merge sets)
 
 
 def _finite(w):
@@ -416,6 +417,11 @@ class MIS:
         weights have no merges (vm_factor 0) and for ``vm`` (its own rule: strategies.py)."""
         return True if (self.merge_everywhere or not self.mis_merges) else prev_delta
 
+    def merge_offered(self, prev_delta):
+        """Whether the camera gathers at a vertex (the sampling; ``merge_here_camera`` is its
+        term in the weights, which moments.FamilyMIS makes a family vector): the same here."""
+        return self.merge_here_camera(prev_delta)
+
     def pending_after_scatter(self, cos_out, pdf_fwd_w, is_delta, mergeable=True):
         """Light side (merges behind delta vertices only): the terms that a merge at the vertex
         just scattered from adds to (d_vc, d_vm) [VCM (35), (36)], kept apart until the next vertex
@@ -524,13 +530,14 @@ class MIS:
             return _finite(1.0 / (1.0 + self.h(pdf_cam_a / (self.n_lt * pdf_light_a))))  # [eq. 20], [Veach 9.2.2]
         return _finite(1.0 / (1.0 + self.h(pdf_cam_a / pdf_light_a)))  # [eq. 20]
 
-    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, inv_factor=None):
+    def weight_merge(self, l_vcm, l_vm, c_vcm, c_vm, pdf_cam_dir_w, pdf_cam_rev_w, inv_factor=None, own=True):
         """Merge of camera vertex z with a light vertex y within the radius (merge.py).
         ``pdf_cam_dir_w``: z's BSDF density of y's incoming direction (the camera subpath going
         on where the light subpath came from); ``pdf_cam_rev_w``: z's density of its own incoming
         direction given y's (the light subpath going on where the camera subpath came from);
         ``inv_factor``: 1 / this merge's density relative to a surface merge (1 / merge_factor,
-        scenes with media; None: 1)."""
+        scenes with media; None: 1); ``own``: z's merge_here_camera (read by moments.FamilyMIS:
+        the merge's family)."""
         if self.s.ppm:
             return 1.0 + 0.0 * l_vcm                        # vm: a partition, no MIS
         if not self.mis_merges:

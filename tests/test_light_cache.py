@@ -343,19 +343,56 @@ def test_auto_ranks_with_pt_s_time_as_the_least_and_near_ties_to_pt(cache_var, c
     assert pt.efficiency == pytest.approx(1.0)
 
 
+def spy_pilots(monkeypatch):
+    """The pilot renders of technique auto's decisions: a list that gets (whether the pilot
+    merges behind delta vertices only, its candidates' names) for each."""
+    from bdpt_jit import auto
+    calls, real = [], auto.pilot_group
+
+    def spy(make, trials, behind_delta, *args):
+        calls.append((behind_delta, [tr.name for tr in trials]))
+        return real(make, trials, behind_delta, *args)
+    monkeypatch.setattr(auto, 'pilot_group', spy)
+    return calls
+
+
+def names_of(info):
+    return [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
+
+
+def test_auto_in_media_pilots_vcm_s_own_merge_set_apart(monkeypatch):
+    """In a scene with media (glass in fog) one pilot cannot predict both merge sets (the merges
+    inside media are beams; moments.instrument refuses it): vcm's own merge set (behind delta
+    vertices) gets a pilot of its own, the others the pilot merging everywhere, and the image is
+    finite."""
+    import media_scenes
+    from bdpt_jit import auto
+    scene = mi.load_dict(media_scenes.volumetric_caustic(res=8))
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
+    pilots = spy_pilots(monkeypatch)
+    img = np.array(mi.render(scene, integrator=integ, spp=2, seed=5))
+    names = names_of(integ.last_render_info['auto'])
+    assert auto.BEHIND_DELTA in names and np.all(np.isfinite(img))
+    assert pilots == [(False, [n for n in names if n != auto.BEHIND_DELTA]), (True, [auto.BEHIND_DELTA])], pilots
+
+
 @pytest.mark.parametrize('scene_name,merging', [('cornell-box.xml', False), ('caustic.xml', True)])
-def test_auto_renders_the_chosen_configuration(scene_name, merging):
+def test_auto_renders_the_chosen_configuration(monkeypatch, scene_name, merging):
     """technique 'auto' (auto.py): the pilot's predicted variances and the timed trials choose
     the most efficient candidate, and the image is that candidate's render with the caller's seed
     (the pilot and the trials share no sample with it: no bias from the choice). Merging
     candidates (vcm everywhere) where the scene has a glossy or delta BSDF (the caustic's glass),
-    and with a delta BSDF vcm's own merge set (behind delta vertices, timed, from a pilot of its
-    own), none among diffuse walls (the Cornell box)."""
+    and with a delta BSDF vcm's own merge set (behind delta vertices, timed, predicted by the
+    same pilot), none among diffuse walls (the Cornell box)."""
     from bdpt_jit import auto
     scene = load_scene(scene_name, 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
+    pilots = spy_pilots(monkeypatch)
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
     info = integ.last_render_info['auto']
+    # one pilot render, merging everywhere where merges are offered, that predicts vcm's own merge
+    # set too (moments.FamilyMIS's split: no media here)
+    assert pilots == [(False, names_of(info))], pilots
     names = [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
     caches = [f'cache {n:g}x{c}' for n in auto.LIGHT_PATHS for c in auto.CONNECTIONS]
     merging_caches = [f'vcm cache {n:g}x{c}' for n in auto.MERGING_LIGHT_PATHS for c in auto.CONNECTIONS]

@@ -352,8 +352,8 @@ def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
             l_vcm, _, l_vm = light_state(i)
             c_vcm, _, c_vm = camera_state(i)
             inv_factor = 1.0 / mis.merge_factor(B(P['med'][:, i]), True, F(P['sigma'][:, i])) if media else None
-            w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i]), inv_factor),
-                         dtype=np.float64)
+            w = np.array(mis.weight_merge(l_vcm, l_vm, c_vcm, c_vm, F(pE[:, i]), F(pL[:, i]), inv_factor,
+                                          own=mis.merge_here_camera(B(delta_v[:, i + 1]))), dtype=np.float64)
             out.append(np.where(merge_allowed(k, i, P, everywhere), w, 0.0))
     return np.array(out)
 
