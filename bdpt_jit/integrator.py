@@ -220,10 +220,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         with one seed; the Cornell box 2.05 against 1.45), and its connections draw among all of
         them (n_c = c / V, auto.candidates)."""
         from . import auto
-        if not ctx.strategies.trace_connect:
+        if not ctx.strategies.trace_connect or mi.is_spectral:     # (no caches in spectral variants)
             return 0.0, None
-        kinds = [{}] + ([{'technique': 'vcm', 'merge_everywhere': True}]
-                        if auto.offers_merging(ctx) and not mi.is_spectral else [])
+        kinds = [{}] + ([{'technique': 'vcm', 'merge_everywhere': True}] if auto.offers_merging(ctx) else [])
         out = []
         for kind in kinds:
             integ = make({**kind, 'light_paths': 1.0, 'connections': 1})

@@ -30,10 +30,12 @@ linear in its quantities; 1 / eta, the merges' own scale, is a number) carries e
 terms in its own component. Its weights dot the vector with a configuration's counts: with
 counts (1, 1, 1) they are the pilot's own balance weights, and they hand the vector to the
 ``MomentFilm`` (the tap) that the strategy that asked for them then adds its sample to. Whether
-a merge behind a non-delta vertex is a strategy is not a count: a pilot predicts the candidates
-of its own merge set, everywhere (``merge_everywhere``) or behind delta vertices only (vcm's
-default; the light side's deferred merge terms are family vectors too), and auto runs one pilot
-per merge set among its candidates."""
+a merge behind a non-delta vertex is a strategy is a fifth family (``split``): a pilot merging
+everywhere keeps the merges behind a delta vertex apart from the others and predicts vcm's own
+merge set, behind delta vertices only, with the same samples (auto's pilot in scenes without
+media). Without it a pilot predicts the candidates of its own merge set, everywhere
+(``merge_everywhere``) or behind delta vertices only (the light side's deferred merge terms are
+family vectors too), and auto runs one pilot per merge set in scenes with media."""
 
 import drjit as dr
 import mitsuba as mi

@@ -113,6 +113,9 @@ CASES = [
     ('llvm_ad_spectral', 'textured', 'vcm', 'power'),
     ('llvm_ad_spectral', 'specfilm', 'bdpt', 'power'),
     ('llvm_ad_spectral', 'specfilm', 'lt', 'power'),
+    # technique auto (its candidates without the light vertex caches there; each batch decides
+    # anew): the image is the chosen candidate's
+    ('llvm_ad_spectral', 'textured', 'auto', 'power'),
 ]
 
 
