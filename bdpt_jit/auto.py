@@ -152,7 +152,8 @@ def candidates(ctx, vpp, vpp_merging=None):
     exist, max_depth >= 3, and not in spectral variants), and where ``offers_merging``, each of
     the bidirectional ones merging everywhere (technique vcm), and in a scene with a delta BSDF
     the classic estimator merging behind delta vertices only (vcm's own merge set, BEHIND_DELTA:
-    predicted by a pilot of that merge set, ``pilot``); ``vpp``: the stored vertices per
+    predicted by the pilot merging everywhere, or in a scene with media by a pilot of that
+    merge set: ``pilot``); ``vpp``: the stored vertices per
     light subpath (light_cache.pilot), which a cache's n_c = c / vpp needs, and ``vpp_merging``
     the merging caches' (their light subpaths also store the vertices only a merge can use:
     2.05 against 1.45 on the Cornell box at max_depth 4, and each connection draws among all of
