@@ -223,7 +223,7 @@ def test_sparse_strategies_in_branches(name, technique, monkeypatch):
     if not layered:
         from bdpt_jit.beams import BeamGather
         from bdpt_jit.merge import Merger
-        monkeypatch.setattr(Merger, 'gather', lambda self, idx, v, sub, active, film_pos=None: mi.Spectrum(0.0))
+        monkeypatch.setattr(Merger, 'gather', lambda self, idx, v, sub, active, film_pos=None, own=True: mi.Spectrum(0.0))
         monkeypatch.setattr(BeamGather, 'gather', lambda self, idx, seg, active, film_pos=None: mi.Spectrum(0.0))
         integ.merge_iteration = 0
         without = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
