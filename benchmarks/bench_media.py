@@ -19,7 +19,12 @@ reference's own error is part of every figure; it is estimated from the referenc
 (independent seeds) and printed, and each figure is also given less it (as bench_light_cache.py).
 On the caustic, `volpath` and `volpathmis`
 converge slowly (that is the point of the scene), so the default reference is bdpt (its
-agreement with volpath on these scenes is tested), at many more samples than any contestant reaches."""
+agreement with volpath on these scenes is tested), at many more samples than any contestant reaches.
+
+``--fig-dir DIR`` also writes, per scene, ``KEY-images.png`` (the reference and each integrator's
+image at the budget, its first run, side by side at one exposure: the reference's 98th
+percentile of luminance is white) and ``KEY-error.png`` (the medians' relMSE less the
+reference's own against time, log-log), as docs/media.md shows them."""
 
 import argparse
 import hashlib
@@ -98,9 +103,9 @@ def own_error(halves, mask=None):
 
 
 def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
-    """[(seconds, spp, relMSE)] of the running mean of batches at each checkpoint of ``budget``
-    (technique auto: its first batch chooses, with the choice's time in the budget, the others
-    render the chosen configuration, ``last_chosen``)."""
+    """([(seconds, spp, relMSE)] of the running mean of batches at each checkpoint of ``budget``,
+    the image at the budget) (technique auto: its first batch chooses, with the choice's time in
+    the budget, the others render the chosen configuration, ``last_chosen``)."""
     acc, spp, b, out = 0.0, 0, 0, []
     t0 = time.perf_counter()
     for frac in CHECKPOINTS:
@@ -112,15 +117,55 @@ def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
             spp += batch_spp
             b += 1
         out.append((time.perf_counter() - t0, spp, relmse(acc / max(spp, 1), ref, mask)))
-    return out
+    return out, acc / max(spp, 1)
 
 
 def measure(path, name, ref, args, mask=None):
-    """Median (seconds, spp, relMSE) per checkpoint over --repeats runs."""
+    """(median (seconds, spp, relMSE) per checkpoint over --repeats runs, the first run's image)."""
     scene, integ = load(path, args.res, args.max_depth, integrator(name, args.max_depth))
     mi.render(scene, integrator=integ, spp=1, seed=999)          # warm-up: compiles the kernels
     runs = [curve(scene, integ, ref, args.budget, args.batch_spp, 1000 * (r + 1), mask) for r in range(args.repeats)]
-    return [tuple(float(np.median([run[i][j] for run in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
+    medians = [tuple(float(np.median([run[i][j] for run, _ in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
+    return medians, runs[0][1]
+
+
+def save_figures(key, ref, results, ref_err, fig_dir):
+    """``KEY-images.png`` and ``KEY-error.png`` in ``fig_dir`` (see the module's docstring);
+    ``results``: {integrator: (medians, image)}."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    os.makedirs(fig_dir, exist_ok=True)
+    white = max(float(np.quantile(ref.mean(axis=2), 0.98)), 1e-6)
+    show = lambda img: np.clip(np.clip(img / white, 0.0, None) ** (1 / 2.2), 0.0, 1.0)     # noqa: E731
+    base = results.get('volpath')
+    own = lambda e: e - ref_err                 # noqa: E731  (<= 0: within the reference's own error)
+    fig, axes = plt.subplots(1, len(results) + 1, figsize=(2.6 * (len(results) + 1), 3.0))
+    axes[0].imshow(show(ref), interpolation='nearest')
+    axes[0].set_title('reference', fontsize=9)
+    for ax, (name, (rows, img)) in zip(axes[1:], results.items()):
+        ax.imshow(show(img), interpolation='nearest')
+        ratio = f', {max(own(rows[-1][2]), 0.0) / own(base[0][-1][2]):.3g} x volpath' \
+            if base and own(base[0][-1][2]) > 0 else ''
+        ax.set_title(f'{name}: {rows[-1][1]:.0f} spp{ratio}', fontsize=9)
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(os.path.join(fig_dir, f'{key}-images.png'), dpi=110)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    for name, (rows, _) in results.items():
+        kept = [(r[0], own(r[2])) for r in rows if own(r[2]) > 0]       # (a log axis: the positive ones)
+        ax.loglog([t for t, _ in kept], [e for _, e in kept], 'o-', label=name)
+    ax.set_xlabel('seconds')
+    ax.set_ylabel("relMSE less the reference's")
+    ax.set_title(f'{key}: error against time', fontsize=10)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(fig_dir, f'{key}-error.png'), dpi=110)
+    plt.close(fig)
 
 
 def table(key, rows, ref_err):
@@ -153,6 +198,7 @@ def main():
                     help='pixels measured: all, or those not seeing glass (tests/media_scenes.media_lt_mask)')
     ap.add_argument('--variant', default='llvm_ad_rgb')
     ap.add_argument('--cache-dir', default=os.path.join(os.path.dirname(os.path.abspath(__file__)), 'cache'))
+    ap.add_argument('--fig-dir', help='also write each scene\'s images side by side and its error against time here')
     args = ap.parse_args()
     mi.set_variant(args.variant)
     mi.set_log_level(mi.LogLevel.Error)
@@ -170,7 +216,10 @@ def main():
         ref_err = own_error(halves, mask)
         print(f'# {key}: {path}, reference in {time.perf_counter() - t0:.0f} s (0 if cached), its own relMSE '
               f'{ref_err:.3g}; region {args.region} ({share:.0%} of the pixels)')
-        table(key, {name: measure(path, name, ref, args, mask) for name in args.integrators.split(',')}, ref_err)
+        results = {name: measure(path, name, ref, args, mask) for name in args.integrators.split(',')}
+        table(key, {name: rows for name, (rows, _) in results.items()}, ref_err)
+        if args.fig_dir:
+            save_figures(key, ref, results, ref_err, args.fig_dir)
 
 
 if __name__ == '__main__':
