@@ -169,7 +169,8 @@ def candidates(ctx, vpp, vpp_merging=None):
     if merging:
         out.append(Trial('vcm', vcm, (1.0, 1.0, 1.0)))
     if merging and ctx.has_delta:       # vcm's own merge set: merges behind delta vertices only
-        out.append(Trial(BEHIND_DELTA, {'technique': 'vcm'}, (1.0, 1.0, 1.0)))
+        # (merge_everywhere False whatever the caller's: its renders merge as it is predicted)
+        out.append(Trial(BEHIND_DELTA, {'technique': 'vcm', 'merge_everywhere': False}, (1.0, 1.0, 1.0)))
         out[-1].own_pilot = ctx.media is not None       # (with media: a pilot of its own, ``pilot``)
     if not ctx.strategies.trace_connect or mi.is_spectral:
         return out

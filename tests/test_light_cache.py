@@ -360,6 +360,28 @@ def names_of(info):
     return [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
 
 
+def test_auto_s_behind_delta_candidate_merges_behind_delta_whatever_the_caller_sets(monkeypatch):
+    """vcm's own merge set (auto.BEHIND_DELTA) is rendered with merges behind delta vertices
+    only, as the pilot predicts it, also where the caller's auto integrator was given
+    merge_everywhere=True (the candidates' settings go over the caller's: it would have merged
+    everywhere while predicted and reported as vcm's own set)."""
+    from bdpt_jit import auto
+    captured, real = {}, auto.time_trial
+
+    def spy(make, trial, *args, **kwargs):
+        captured['make'] = make         # the render's own integrator maker (integrator.render_auto)
+        return real(make, trial, *args, **kwargs)
+    monkeypatch.setattr(auto, 'time_trial', spy)
+    scene = load_scene('caustic.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'merge_everywhere': True})
+    mi.render(scene, integrator=integ, spp=1, seed=5)
+    info = integ.last_render_info['auto']
+    settings = {c['name']: c['settings'] for c in info['candidates']}
+    made = captured['make'](settings[auto.BEHIND_DELTA])
+    assert made.settings['technique'] == 'vcm' and made.settings['merge_everywhere'] is False
+    assert captured['make'](settings['vcm']).settings['merge_everywhere'] is True
+
+
 def test_auto_in_media_pilots_vcm_s_own_merge_set_apart(monkeypatch):
     """In a scene with media (glass in fog) one pilot cannot predict both merge sets (the merges
     inside media are beams; moments.instrument refuses it): vcm's own merge set (behind delta
