@@ -444,9 +444,8 @@ def pilot_group(make, trials, behind_delta, scene, sensor, seed):
     """``pilot`` for the trials of one merge set (``behind_delta``: vcm's own, merges behind
     delta vertices only; else everywhere where a trial merges): one pilot render. A pilot
     merging everywhere predicts the trials merging behind delta vertices too (moments.FamilyMIS's
-    ``split``: their samples shared, where two pilots' independent estimates of the heavy-tailed
-    caustics chose the merging caches over vcm on the sun room, docs/light-cache.md), save in
-    scenes with media (``own_pilot``)."""
+    ``split``: one render fewer, and both merge sets' v from the same samples), save in scenes
+    with media (``own_pilot``)."""
     merging = any(tr.merges for tr in trials)
     split = not behind_delta and any(tr.behind_delta for tr in trials)
     settings = {'mis': 'balance'}

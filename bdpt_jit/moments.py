@@ -49,6 +49,15 @@ MAX_PIXELS = 16384                # pixels whose moments the pilot keeps (a latt
 MAX_LENGTH = 6                    # strategies of longer paths share one layer (MomentFilm.estimates)
 
 
+def family_count(own, n):
+    """The count of a strategy of family ``own`` (0 one, 1 connect, 2 splat, 3 merge; or, a merge
+    with both merge sets, its family's unit vector) under counts ``n`` = (n_c, n_lt, n_m) or
+    (n_c, n_lt, n_m behind delta, n_m elsewhere)."""
+    if isinstance(own, int):
+        return 1.0 if own == 0 else n[own - 1]
+    return own[3] * n[2] + own[4] * n[3]
+
+
 class FamilyMIS(MIS):
     """The balance heuristic with the families of the counts kept apart (see above). ``counts``:
     the configuration whose weights it returns, (n_c, n_lt, n_m) (floats, or arrays of the
@@ -100,7 +109,7 @@ class FamilyMIS(MIS):
         return self.F(*[z + 1.0 if i == k else z for i in range(self.width)])
 
     def as_family(self, x):
-        """``x``, a family vector or a number (then in every family: a zero)."""
+        """``x`` as a family vector (a number, in practice a zero, in every family)."""
         return x if isinstance(x, self.F) else self.bcast(x)
 
     def one(self, x):
@@ -147,11 +156,7 @@ class FamilyMIS(MIS):
             self.tap.offer(R, own)
         n = [self.h(x) for x in self.eval_counts]                         # h(n_t): [Veach 9.2.2] h(n_t p_t)
         r = R[0] + sum(n[i] * R[i + 1] for i in range(self.width - 1))    # (family sums)
-        if isinstance(own, int):
-            mine = 1.0 if own == 0 else n[own - 1]
-        else:       # a merge with both merge sets: its family's count
-            mine = own[3] * n[2] + own[4] * n[3]
-        return _finite(mine / r)                                           # [eq. 20], [Veach 9.2.2]
+        return _finite(family_count(own, n) / r)                                           # [eq. 20], [Veach 9.2.2]
 
     def _zero(self, like):
         if self.tap is not None:
@@ -386,11 +391,10 @@ class MomentFilm:
             if self.can_miss[k]:
                 add(dr.abs(c_mean), base + 1 + K + k, ok & ~has)
             if lay is None:         # merges: their I^2 / N_t, N_t = P n_m light subpaths, is left out
-                n_m = n[2] if isinstance(own, int) else own[3] * n[2] + own[4] * n[3]   # (split: the merge's family)
-                t_k = u_mean * (n_m * inv_r)                                # U w_m of candidate k
+                t_k = u_mean * (family_count(own, n) * inv_r)               # U w_m of candidate k
                 terms.append(dr.select(ok & dr.isfinite(t_k), t_k, 0.0))
                 continue
-            i_t = u_mean * ((1.0, n[0], n[1])[own] * inv_r)                 # U w_s of candidate k
+            i_t = u_mean * (family_count(own, n) * inv_r)                   # U w_s of candidate k
             at = base + 1 + 2 * K + (2 * k + group) * len(self.families) + lay
             add(i_t, at, ok & dr.isfinite(i_t))
         return tuple(terms)

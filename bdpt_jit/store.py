@@ -9,6 +9,7 @@ no vertex is ever dropped, so every strategy the MIS weights count is really ava
 import drjit as dr
 import mitsuba as mi
 
+from .moments import SPLIT_WIDTH
 from .vertex import Vertex
 
 
@@ -41,7 +42,7 @@ FIELDS = {
 _COMPONENTS = {mi.Point3f: 3, mi.Normal3f: 3, mi.Vector3f: 3, mi.Vector4f: 4, mi.Point2f: 2,
                mi.Float: 1, mi.UInt32: 1, mi.ShapePtr: 1, mi.BSDFPtr: 1, mi.MediumPtr: 1,
                mi.Spectrum: dr.size_v(mi.Spectrum),    # RGB 3, monochrome 1, spectral 4
-               mi.ArrayXf: 5}                          # technique auto's pilot: moments.SPLIT_WIDTH families
+               mi.ArrayXf: SPLIT_WIDTH}                # technique auto's pilot's family vectors (moments.py)
 
 
 class VertexRecord:
