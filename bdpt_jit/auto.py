@@ -18,7 +18,9 @@ SIGGRAPH 2022) and each candidate's measured time.
    no candidate could be chosen over pt even at the probe's time, pt is (``clear_pt``). Else
    the classic estimator, vcm's and three caches are timed where a candidate they decide could
    still be chosen at the least time it could take (``time_points``). A trial renders TRIAL_SPP
-   samples per pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp);
+   samples per pixel (fewer, at least 1, in a crop of more than TRIAL_SAMPLES / TRIAL_SPP pixels: trial_spp),
+   in a crop of more than TRIAL_PIXELS in every k-th row only, its light subpaths and merges
+   scaled to match (``trial_stride``);
    t, seconds per sample per pixel, is the time their kernels run (Dr.Jit's kernel
    history: not the time to trace or compile them, which a long render pays once a pass or once). The other caches' t comes from a cost model fitted to the timed caches
    (cost_model), linear in the light subpaths per camera sample and in the connections per
@@ -58,6 +60,7 @@ TRIAL_SPP = 4                   # the samples per pixel whose time a trial measu
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
 LATTICE_PILOT_SPP = 2           # and in a crop larger than the moment film keeps (``pilot_spp``)
 TRIAL_SAMPLES = 1 << 15         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
+TRIAL_PIXELS = 1 << 16          # a trial in a larger crop traces camera samples in every k-th pixel (trial_stride)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
@@ -185,9 +188,10 @@ def candidates(ctx, vpp, vpp_merging=None):
     return out
 
 
-def kernel_seconds(render):
+def kernel_seconds(render, weight=None):
     """Seconds the kernels that ``render()`` launches run (Dr.Jit's kernel history): neither
-    tracing them in Python nor compiling them, which a long render pays once a pass or once."""
+    tracing them in Python nor compiling them, which a long render pays once a pass or once;
+    with ``weight``, each kernel's seconds times weight(its width)."""
     was = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history_clear()
@@ -197,20 +201,46 @@ def kernel_seconds(render):
     finally:
         history = dr.kernel_history()
         dr.set_flag(dr.JitFlag.KernelHistory, was)
-    return sum(k.get('execution_time', 0.0) for k in history) / 1e3
+    if weight is None:
+        return sum(k.get('execution_time', 0.0) for k in history) / 1e3
+    return sum(k.get('execution_time', 0.0) * weight(k.get('size', 0)) for k in history) / 1e3
 
 
 def trial_spp(sensor):
     """The samples per pixel of a timed trial: TRIAL_SPP in a crop of up to TRIAL_SAMPLES /
-    TRIAL_SPP pixels, fewer in a larger one (TRIAL_SAMPLES / pixels, at least 1). Not fewer pixels
-    instead: a merge's cost grows with the light vertices of its iteration (one sample per pixel
-    of the whole crop), and each kernel's fixed cost would be scaled up with them (timed on every
-    56th pixel of a 1280 x 720 image, pt's seconds per spp came out 1.42 times, vcm's 0.67 times
-    the whole image's)."""
+    TRIAL_SPP pixels, fewer in a larger one (TRIAL_SAMPLES / the pixels it traces, at least 1:
+    ``trial_stride``)."""
     if sensor is None:
         return TRIAL_SPP
+    return int(min(TRIAL_SPP, max(1, TRIAL_SAMPLES // trial_pixels(sensor)[1])))
+
+
+def trial_stride(sensor):
+    """k: a timed trial traces camera samples in every k-th row of a crop of more than
+    TRIAL_PIXELS pixels (k = pixels / TRIAL_PIXELS, rounded up), and light subpaths for
+    those samples only, merging at sqrt(k) times the radius (integrator.BDPTIntegrator.
+    camera_stride): each sample's work is then the whole crop's, whose time it measures (a
+    merge finds as many light vertices: pi r^2 N is the render's). A trial of every pixel took
+    time in proportion to them, and merging everywhere in proportion to their square (its
+    iterations' light vertices within the radius, at a radius fixed in scene units):
+    veach-bidir at 1024 x 1024, the merging cache 1 x 1's trial of 1 spp 37 s, the decision
+    59-64 s against a 16-spp render of 43 s. Rows, not every k-th pixel: at k = 16 pt's camera
+    rays, 16 pixels apart, took 1.43 times the whole crop's time a sample. Not fewer pixels with
+    all their light subpaths: a kernel's fixed cost scaled up with the pixels left out (every
+    56th pixel of a 1280 x 720 crop: pt's seconds per spp came out 1.42 times the whole
+    image's, vcm's 0.67). 1 in spectral variants (as the pilot's lattice, integrator.lattice_step)."""
+    if sensor is None or mi.is_spectral:
+        return 1
+    pixels = trial_pixels(sensor, 1)[0]
+    return 1 if pixels <= TRIAL_PIXELS else -(-pixels // TRIAL_PIXELS)
+
+
+def trial_pixels(sensor, k=None):
+    """(the crop's pixels, those a trial traces camera samples in: every k-th row, ``trial_stride``)."""
     crop = sensor.film().crop_size()
-    return int(min(TRIAL_SPP, max(1, TRIAL_SAMPLES // (int(crop[0]) * int(crop[1])))))
+    w, h = int(crop[0]), int(crop[1])
+    k = trial_stride(sensor) if k is None else k
+    return w * h, w * -(-h // k)
 
 
 _WARM = set()       # the trial renders (settings, crop, spp) run once in this process (time_trial)
@@ -232,17 +262,35 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     integ = make(trial.settings) if trial.pixel_counts is None else make(trial.settings, trial.pixel_counts)
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
     key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
+    k = trial_stride(sensor)
+    pixels, traced = trial_pixels(sensor, k) if sensor is not None else (1, 1)
+    if k > 1:
+        integ.trial_stride = k
 
     def render():
         trial.renders += 1
-        add_image(trial, integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp), spp)
+        image = integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp)
+        if k == 1:          # (a lattice's image has camera samples in its pixels only)
+            add_image(trial, image, spp)
+    measure = (lambda: kernel_seconds(render)) if k == 1 else (lambda: kernel_seconds(render, lattice_weight(pixels, traced)))
     if key not in _WARM:
         _WARM.add(key)
-        first = kernel_seconds(render)
+        first = measure()
         add_timing(trial, first / spp)
         if first >= ONE_TIMING_S:
             return
-    add_timing(trial, kernel_seconds(render) / spp)
+    add_timing(trial, measure() / spp)
+
+
+def lattice_weight(pixels, traced):
+    """A lattice trial's kernel weights (``trial_stride``): the kernels over its samples and
+    light subpaths count pixels / traced times (the whole crop's would have as many more
+    lanes), those over the film (its pixels times 1 to 16 channels) once: developing the
+    crop's film costs the lattice's render as much as the crop's (veach-bidir at 1024 x 1024,
+    k = 16: 5.9 of pt's 42.7 ms of kernels, 94 ms of 630 scaled by k)."""
+    film = {pixels * m for m in range(1, 17)}
+    scale = pixels / traced
+    return lambda size: 1.0 if size in film else scale
 
 
 def add_timing(trial, t):

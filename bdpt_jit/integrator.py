@@ -8,6 +8,7 @@ then the camera subpaths (camera_path.py: hits, emitter sampling, connections), 
 evaluating vertices with connect.py and weighting with mis.py; the film (film.py) develops
 the camera image plus the light image."""
 
+import math
 import time as _time
 
 import drjit as dr
@@ -72,6 +73,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.moment_film = None         # its moments.MomentFilm after a render
         self.pixel_counts = None        # technique auto's per-pixel candidate: pixel_counts.PixelCounts
         self.last_chosen = None         # technique auto: the integrator of its last decision (renders on without choosing)
+        self.trial_stride = 1           # technique auto's timed trial of a large crop: camera samples every k-th pixel (auto.trial_stride)
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -288,7 +290,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if samples_done > 0 and self.hooks.stop():
                 return samples_done, True, levels_used
             if ctx.moments is not None:      # technique auto's pilot (moments.py): its halves
-                cam = camera_lattice(ctx, pixel_start, pixel_count)[1]
+                cam = camera_lattice(lattice_step(ctx), pixel_start, pixel_count)[1]
                 ctx.moments.begin_pass(spp_pass * pixel_count, spp_pass, samples_done // n_pixels, spp_pass * cam)
             try:
                 levels = self.render_pass(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
@@ -344,8 +346,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
     def pass_state(self, ctx, acc, seed, i, spp_pass, pixel_start, pixel_count):
         """The passes.PassState of pass ``i``: its sampler, wavelengths and merging schedule
         (which advances the merge iteration count)."""
-        k = lattice_step(ctx)
-        v0, n_cam = camera_lattice(ctx, pixel_start, pixel_count)
+        k = self.camera_stride(ctx)
+        trial = self.trial_stride > 1       # (technique auto's timed trial of a large crop: camera_stride)
+        run = ctx.sensor.film().crop_size()[0] if trial else 1      # (its rows)
+        v0, n_cam = camera_lattice(k, pixel_start, pixel_count, run)
         n = spp_pass * n_cam
         index = i if k == 1 else LATTICE_PASS + i
         sampler = pass_sampler(ctx, spp_pass, seed, index, max(n, 1))
@@ -363,12 +367,16 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             spectral = ctx.sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f, n), u_wl, True)
         # light subpaths: one per sample of each crop pixel of the pass, or the cache's n_L (whole ones
         # per iteration)
-        n_light = ctx.light_cache.light_paths(spp_pass, pixel_count) if ctx.light_cache is not None \
-            else spp_pass * pixel_count
+        pixels = max(n_cam, 1) if trial else pixel_count     # the pixels whose samples have light subpaths
+        n_light = ctx.light_cache.light_paths(spp_pass, pixels) if ctx.light_cache is not None \
+            else spp_pass * pixels
         schedule, eta, radius = None, None, None
         if ctx.strategies.trace_merge:
             s = self.settings
-            schedule = MergeSchedule(ctx.scene, s['radius'], s['radius_alpha'], self.merge_iteration + 1,
+            # a trial's light subpaths are 1/k of the render's: its radius sqrt(k) times the
+            # render's keeps pi r^2 N, the light vertices a merge finds (and its weights' eta)
+            radius_rel = s['radius'] * (math.sqrt(k) if trial else 1.0)
+            schedule = MergeSchedule(ctx.scene, radius_rel, s['radius_alpha'], self.merge_iteration + 1,
                                      spp_pass, n_light // spp_pass)
             self.merge_iteration += spp_pass
             # (max: a lattice pass without camera samples, whose terms are unused)
@@ -376,11 +384,23 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         ps.pixel_sampler = pixel_sampler(ctx, spp_pass, seed, index, max(n, 1))
-        if k > 1:
+        if trial:
+            ps.pixel_stride, ps.pixel_run = k, run
+        elif k > 1:
             self.lattice_pass_state(ctx, ps, seed, i, k, n_light)
         if ctx.light_cache is not None:
             self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))
         return ps
+
+    def camera_stride(self, ctx):
+        """k: the passes trace camera samples in every k-th crop pixel or row only. technique
+        auto's timed trial of a large crop (``trial_stride``, auto.trial_stride): in every k-th
+        row (whole rows: its camera rays as coherent as the render's), with light subpaths for
+        those samples only and its merges at sqrt(k) times the radius (pass_state), so that
+        each sample's work, and so the time a sample per pixel of the crop takes, is the
+        render's; its pilot (``lattice_step``): in every k-th pixel, with every light subpath of
+        the render; 1 elsewhere."""
+        return self.trial_stride if self.trial_stride > 1 else lattice_step(ctx)
 
     def lattice_pass_state(self, ctx, ps, seed, i, k, n_light):
         """technique auto's pilot of a large crop (``lattice_step`` k > 1): camera samples in
@@ -561,12 +581,14 @@ def lattice_step(ctx):
     return m.step if m is not None and m.step > 1 and not mi.is_spectral else 1
 
 
-def camera_lattice(ctx, pixel_start, pixel_count):
-    """(v0, count): the camera samples' pixels of a pass over crop pixels [pixel_start,
-    pixel_start + pixel_count): (v0 + j) k for j < count (k = ``lattice_step``)."""
-    k = lattice_step(ctx)
-    v0 = -(-pixel_start // k)
-    return v0, -(-(pixel_start + pixel_count) // k) - v0
+def camera_lattice(k, pixel_start, pixel_count, run=1):
+    """(v0, count): the lattice pixels v0 .. v0 + count - 1 among crop pixels [pixel_start,
+    pixel_start + pixel_count), of the lattice of the first ``run`` pixels of every k run
+    (camera_path.camera_pixels; k: BDPTIntegrator.camera_stride; run 1: every k-th pixel)."""
+    def below(x):           # lattice pixels before crop pixel x
+        return x // (run * k) * run + min(x % (run * k), run)
+    v0 = below(pixel_start)
+    return v0, below(pixel_start + pixel_count) - v0
 
 
 def merge_terms(schedule, n, media):

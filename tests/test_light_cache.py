@@ -1117,3 +1117,78 @@ def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
     auto.time_trial(make, trial, scene, scene.sensors()[0], 0, auto.trial_spp(scene.sensors()[0]))
     assert seen['samples'] == 2 * 128 * 128
     assert trial.seconds == pytest.approx(0.012 / 2, rel=1e-12) and trial.timed and trial.timings == 2    # (the first: two)
+
+
+def _sky_box_filter(width, height):
+    """_sky_only with a box filter: a sample reaches its own pixel only."""
+    desc = _sky_only(width, height)
+    desc['sensor']['film']['rfilter'] = {'type': 'box'}
+    return desc
+
+
+def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
+    """auto.trial_stride / BDPTIntegrator.camera_stride: in a crop of more than
+    auto.TRIAL_PIXELS pixels a timed trial traces camera samples in every k-th row only (k =
+    pixels / TRIAL_PIXELS, rounded up), in every pixel of those rows, with one light subpath a
+    camera sample (not one a sample of every pixel) and merging at sqrt(k) times the render's
+    radius: pi r^2 N, the light vertices a merge finds and the weights' eta, stay the whole
+    crop's. Under a constant sky each light subpath is one ray that escapes, so the counts are
+    exact. Planted: every k-th pixel instead of rows, the light subpaths of every pixel, or the
+    radius unscaled: each fails."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
+    scene = mi.load_dict(_sky_box_filter(16, 16))        # 256 pixels: k = 4, rows 0, 4, 8, 12
+    sensor = scene.sensors()[0]
+    assert auto.trial_stride(sensor) == 4 and auto.trial_pixels(sensor) == (256, 64)
+    assert auto.trial_stride(mi.load_dict(_sky_only(8, 8)).sensors()[0]) == 1
+    assert auto.trial_pixels(mi.load_dict(_sky_only(16, 15)).sensors()[0]) == (240, 64)     # (rows 0, 4, 8, 12)
+    info = {}
+    for k in (1, 4):
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'technique': 'vcm', 'merge_everywhere': True,
+                              'statistics': True})
+        integ.trial_stride = k
+        image = np.array(integ.render(scene, sensor, seed=0, spp=2))[..., 0]
+        info[k] = integ.last_render_info
+    rows = np.arange(16) % 4 == 0
+    assert np.all(image[rows] > 0) and np.all(image[~rows] == 0)
+    assert info[1]['rays']['camera_rays'] == info[1]['rays']['light_rays'] == 2 * 256
+    assert info[4]['rays']['camera_rays'] == info[4]['rays']['light_rays'] == 2 * 64
+    assert info[4]['merge_radius'] == pytest.approx(2.0 * info[1]['merge_radius'], rel=1e-6)
+    for k in (1, 4):        # a cache of half a light subpath a camera sample: of the lattice's samples
+        integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'light_paths': 0.5, 'connections': 1,
+                              'statistics': True})
+        integ.trial_stride = k
+        integ.render(scene, sensor, seed=0, spp=2)
+        assert integ.last_render_info['rays']['light_rays'] == 2 * 256 // (2 * k), k
+
+
+def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
+    """auto.time_trial in a crop of more than TRIAL_PIXELS: the trial's kernels over its
+    samples and light subpaths count pixels / traced times, those over the film (its pixels
+    times 1 to 16 channels) once (developing the crop's film costs the lattice's render what it
+    costs the crop's: auto.lattice_weight); its image does not join the denominator's (only
+    the lattice's pixels have camera samples). Planted: every kernel scaled, or the images
+    kept: each fails."""
+    from bdpt_jit import auto
+    monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
+    monkeypatch.setattr(auto, '_WARM', set())
+    scene = mi.load_dict(_sky_box_filter(16, 16))
+    history = [(64, 0.010), (3 * 256, 0.002), (256, 0.001), (128, 0.004)]     # (width, seconds)
+
+    def kernel_seconds(render, weight=None):
+        render()
+        return sum(t * (weight(size) if weight is not None else 1.0) for size, t in history)
+    monkeypatch.setattr(auto, 'kernel_seconds', kernel_seconds)
+    w = auto.lattice_weight(256, 64)
+    assert [w(size) for size, _ in history] == [4.0, 1.0, 1.0, 4.0]
+    trial = auto.Trial('pt', {'technique': 'pt'}, (0.0, 0.0, 0.0))
+    trial.pilot_image = np.zeros(256)
+    made = []
+
+    def make(settings):
+        made.append(mi.load_dict({'type': 'bdpt', 'max_depth': 3, **settings}))
+        return made[-1]
+    auto.time_trial(make, trial, scene, scene.sensors()[0], 0, 2)
+    assert made[-1].trial_stride == 4
+    assert trial.seconds == pytest.approx((0.010 * 4 + 0.002 + 0.001 + 0.004 * 4) / 2, rel=1e-12)
+    assert trial.renders >= 1 and trial.images == 0
