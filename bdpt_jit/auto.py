@@ -277,7 +277,7 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
         _WARM.add(key)
         first = measure()
         add_timing(trial, first / spp)
-        if first >= ONE_TIMING_S:
+        if first * traced / pixels >= ONE_TIMING_S:     # (the kernels' own time, not the crop's)
             return
     add_timing(trial, measure() / spp)
 
@@ -285,10 +285,10 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
 def lattice_weight(pixels, traced):
     """A lattice trial's kernel weights (``trial_stride``): the kernels over its samples and
     light subpaths count pixels / traced times (the whole crop's would have as many more
-    lanes), those over the film (its pixels times 1 to 16 channels) once: developing the
+    lanes), those over the film (its pixels times 1 to 64 channels) once: developing the
     crop's film costs the lattice's render as much as the crop's (veach-bidir at 1024 x 1024,
     k = 16: 5.9 of pt's 42.7 ms of kernels, 94 ms of 630 scaled by k)."""
-    film = {pixels * m for m in range(1, 17)}
+    film = {pixels * m for m in range(1, 65)}
     scale = pixels / traced
     return lambda size: 1.0 if size in film else scale
 

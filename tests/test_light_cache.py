@@ -1165,10 +1165,11 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
 def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     """auto.time_trial in a crop of more than TRIAL_PIXELS: the trial's kernels over its
     samples and light subpaths count pixels / traced times, those over the film (its pixels
-    times 1 to 16 channels) once (developing the crop's film costs the lattice's render what it
+    times 1 to 64 channels) once (developing the crop's film costs the lattice's render what it
     costs the crop's: auto.lattice_weight); its image does not join the denominator's (only
-    the lattice's pixels have camera samples). Planted: every kernel scaled, or the images
-    kept: each fails."""
+    the lattice's pixels have camera samples); whether its first render counts alone goes by
+    its kernels' own time. Planted: every kernel scaled, the images kept, or the first render
+    judged by the crop's time: each fails."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
     monkeypatch.setattr(auto, '_WARM', set())
@@ -1192,3 +1193,6 @@ def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     assert made[-1].trial_stride == 4
     assert trial.seconds == pytest.approx((0.010 * 4 + 0.002 + 0.001 + 0.004 * 4) / 2, rel=1e-12)
     assert trial.renders >= 1 and trial.images == 0
+    # its first render's kernels ran 0.059 x 64 / 256 s, under auto.ONE_TIMING_S: two timings,
+    # as a short first render of the whole crop (the crop's 0.059 s would have counted alone)
+    assert trial.timings == 2
