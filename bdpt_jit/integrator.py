@@ -307,6 +307,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         """Pass ``i``: spp_pass samples in each of pixel_count crop pixels from pixel_start.
         Returns the light-vertex levels it used."""
         ps = self.pass_state(ctx, acc, seed, i, spp_pass, pixel_start, pixel_count)
+        if self.trial_stride > 1 and ps.n == 0:     # (a trial's pass without a row of its lattice)
+            return 0
         if ctx.strategies.light_pass:
             cap = self.light_capacity(ctx)
             ps.store = LightStore(n=ps.n_light, capacity=cap, record=ctx.record) if cap > 0 else None

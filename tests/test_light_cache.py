@@ -1133,8 +1133,9 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
     camera sample (not one a sample of every pixel) and merging at sqrt(k) times the render's
     radius: pi r^2 N, the light vertices a merge finds and the weights' eta, stay the whole
     crop's. Under a constant sky each light subpath is one ray that escapes, so the counts are
-    exact. Planted: every k-th pixel instead of rows, the light subpaths of every pixel, or the
-    radius unscaled: each fails."""
+    exact; also in passes that hold no row of the lattice. Planted: every k-th pixel instead of
+    rows, the light subpaths of every pixel, the radius unscaled, or a pass without a row
+    rendered: each fails."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
     scene = mi.load_dict(_sky_box_filter(16, 16))        # 256 pixels: k = 4, rows 0, 4, 8, 12
@@ -1143,17 +1144,18 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
     assert auto.trial_stride(mi.load_dict(_sky_only(8, 8)).sensors()[0]) == 1
     assert auto.trial_pixels(mi.load_dict(_sky_only(16, 15)).sensors()[0]) == (240, 64)     # (rows 0, 4, 8, 12)
     info = {}
-    for k in (1, 4):
+    for k, per_pass in ((1, None), (4, None), (4, 7)):      # (7 samples a pass: passes without a row)
         integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'technique': 'vcm', 'merge_everywhere': True,
-                              'statistics': True})
+                              'statistics': True, **({'samples_per_pass': per_pass} if per_pass else {})})
         integ.trial_stride = k
         image = np.array(integ.render(scene, sensor, seed=0, spp=2))[..., 0]
-        info[k] = integ.last_render_info
-    rows = np.arange(16) % 4 == 0
-    assert np.all(image[rows] > 0) and np.all(image[~rows] == 0)
-    assert info[1]['rays']['camera_rays'] == info[1]['rays']['light_rays'] == 2 * 256
-    assert info[4]['rays']['camera_rays'] == info[4]['rays']['light_rays'] == 2 * 64
-    assert info[4]['merge_radius'] == pytest.approx(2.0 * info[1]['merge_radius'], rel=1e-6)
+        info[k, per_pass] = integ.last_render_info
+        rows = np.arange(16) % k == 0
+        assert np.all(image[rows] > 0) and np.all(image[~rows] == 0)
+    assert info[1, None]['rays']['camera_rays'] == info[1, None]['rays']['light_rays'] == 2 * 256
+    for per_pass in (None, 7):
+        assert info[4, per_pass]['rays']['camera_rays'] == info[4, per_pass]['rays']['light_rays'] == 2 * 64
+    assert info[4, None]['merge_radius'] == pytest.approx(2.0 * info[1, None]['merge_radius'], rel=1e-6)
     for k in (1, 4):        # a cache of half a light subpath a camera sample: of the lattice's samples
         integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'light_paths': 0.5, 'connections': 1,
                               'statistics': True})
