@@ -119,6 +119,7 @@ class Trial:
         self.image_sum = None           # their images summed (the mean of the colour channels at the
         #                                 pilots' film's pixels: ``add_image``)
         self.images = 0                 # how many
+        self.image_count = None         # and per pixel, how many cover it (a large crop's trials: rows, add_image)
         self.image_spp = 0              # their samples per pixel (trial_spp)
 
     def report(self):
@@ -270,8 +271,7 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     def render():
         trial.renders += 1
         image = integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp)
-        if k == 1:          # (a lattice's image has camera samples in its pixels only)
-            add_image(trial, image, spp)
+        add_image(trial, image, spp, k)
     measure = (lambda: kernel_seconds(render)) if k == 1 else (lambda: kernel_seconds(render, lattice_weight(pixels, traced)))
     if key not in _WARM:
         _WARM.add(key)
@@ -311,20 +311,25 @@ def trial_seed(seed, k):
     return seed + TRIAL_SEED + 2 * k + 1
 
 
-def add_image(trial, image, spp):
+def add_image(trial, image, spp, rows=1):
     """Adds the image of one of ``trial``'s renders (``spp`` samples per pixel) to its sum: the
-    mean of its colour channels at the pixels the pilots' film keeps (``trial.lattice``). Not in
-    spectral variants, whose pilots' image is the mean over each sample's wavelengths, not the
-    film's RGB; nor before a pilot."""
+    mean of its colour channels at the pixels the pilots' film keeps (``trial.lattice``), of a
+    trial of every ``rows``-th row (``trial_stride``) at those rows only (its camera samples;
+    its light image covers the crop, its splats scaled to stand for every pixel's light
+    subpaths), each pixel's count in ``image_count``. Not in spectral variants, whose pilots'
+    image is the mean over each sample's wavelengths, not the film's RGB; nor before a pilot."""
     if mi.is_spectral or image is None or trial.pilot_image is None:
         return
     a = np.asarray(image, dtype=np.float64)
+    covered = np.broadcast_to((np.arange(a.shape[0]) % rows == 0)[:, None], a.shape[:2]).reshape(-1)
     a = a.reshape(-1, a.shape[-1])[:, :1 if mi.is_monochromatic else 3].mean(axis=1)
     if trial.lattice is not None:
-        a = a[::trial.lattice[2]]
+        a, covered = a[::trial.lattice[2]], covered[::trial.lattice[2]]
     if a.size != trial.pilot_image.size or (trial.images and trial.image_spp != spp):
         return
+    a, n = np.where(covered, a, 0.0), covered.astype(np.float64)
     trial.image_sum = a if trial.image_sum is None else trial.image_sum + a
+    trial.image_count = n if trial.image_count is None else trial.image_count + n
     trial.images += 1
     trial.image_spp = spp
 
@@ -356,7 +361,8 @@ def denominator(trials, rounds=3):
         num, w_sum = w * first.pilot_image, w
         for tr in timed:
             w = tr.image_spp / positive(v[id(tr)])
-            num, w_sum = num + w * tr.image_sum, w_sum + w * tr.images
+            count = tr.image_count if tr.image_count is not None else tr.images
+            num, w_sum = num + w * tr.image_sum, w_sum + w * count
         image = num / w_sum
         image = box3(image.reshape(first.pixel_V.shape)) if first.lattice is None else box3_lattice(image, *first.lattice)
         den = image.reshape(-1) ** 2 + DENOM

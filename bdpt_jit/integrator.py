@@ -392,6 +392,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             self.lattice_pass_state(ctx, ps, seed, i, k, n_light)
         if ctx.light_cache is not None:
             self.cache_pass_state(ctx, ps, seed, i, n_light, (eta, radius))
+        if trial and n_cam > 0:     # its splats stand for the light subpaths of every pixel of the pass
+            scale = ps.splat_scale if ps.splat_scale is not None else ctx.splat_scale
+            ps.splat_scale = scale * dr.opaque(mi.Float, pixel_count / n_cam)
         return ps
 
     def camera_stride(self, ctx):

@@ -1164,14 +1164,35 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
         assert integ.last_render_info['rays']['light_rays'] == 2 * 256 // (2 * k), k
 
 
+def test_a_lattice_trial_s_image_is_unbiased_at_its_rows():
+    """A trial of every k-th row (k = 4 on the Cornell box, 16 x 16) traces light subpaths for
+    its camera samples only, and each splat stands for k of them (integrator pass_state): light
+    tracing's image over the whole crop, and the classic estimator's at the lattice's rows,
+    agree with the whole crop's renders (means of 6 renders of 16 spp each way, within 4
+    standard errors of their difference), so that the denominator may take them (auto.add_image).
+    Planted: the splats not scaled (light tracing a quarter of the light), fails."""
+    scene = load_scene('cornell-box.xml', 16, 4)
+    rows = np.arange(16) % 4 == 0
+    for technique, region in (('lt', slice(None)), ('bdpt', rows)):
+        means = {1: [], 4: []}
+        for k in (1, 4):
+            for seed in range(6):
+                integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': technique})
+                integ.trial_stride = k
+                means[k].append(np.array(integ.render(scene, scene.sensors()[0], seed=seed, spp=16))[region].mean())
+        a, b = np.array(means[1]), np.array(means[4])
+        se = np.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size)
+        assert abs(a.mean() - b.mean()) < 4 * se + 1e-4 * a.mean(), (technique, a.mean(), b.mean(), se)
+
+
 def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     """auto.time_trial in a crop of more than TRIAL_PIXELS: the trial's kernels over its
     samples and light subpaths count pixels / traced times, those over the film (its pixels
     times 1 to 64 channels) once (developing the crop's film costs the lattice's render what it
-    costs the crop's: auto.lattice_weight); its image does not join the denominator's (only
-    the lattice's pixels have camera samples); whether its first render counts alone goes by
-    its kernels' own time. Planted: every kernel scaled, the images kept, or the first render
-    judged by the crop's time: each fails."""
+    costs the crop's: auto.lattice_weight); its image joins the denominator's at its rows only
+    (auto.add_image: they alone have camera samples); whether its first render counts alone goes
+    by its kernels' own time. Planted: every kernel scaled, the image at every row, or the first
+    render judged by the crop's time: each fails."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
     monkeypatch.setattr(auto, '_WARM', set())
@@ -1194,7 +1215,11 @@ def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     auto.time_trial(make, trial, scene, scene.sensors()[0], 0, 2)
     assert made[-1].trial_stride == 4
     assert trial.seconds == pytest.approx((0.010 * 4 + 0.002 + 0.001 + 0.004 * 4) / 2, rel=1e-12)
-    assert trial.renders >= 1 and trial.images == 0
+    # its image at its rows (under the sky, 0.5 each), those rows' counts one a render
+    rows = np.repeat(np.arange(16) % 4 == 0, 16)
+    assert trial.renders >= 1 and trial.images == trial.renders
+    np.testing.assert_array_equal(trial.image_count, rows * trial.renders)
+    np.testing.assert_allclose(trial.image_sum, rows * 0.5 * trial.renders, rtol=1e-6)
     # its first render's kernels ran 0.059 x 64 / 256 s, under auto.ONE_TIMING_S: two timings,
     # as a short first render of the whole crop (the crop's 0.059 s would have counted alone)
     assert trial.timings == 2
