@@ -52,6 +52,8 @@ decide from earlier, independent samples). The candidates use the render's own h
 (power by default); their variances are predicted under the balance heuristic, which the power
 heuristic's differs from by little (Veach's thesis, section 9.2.4)."""
 
+import itertools
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -60,7 +62,7 @@ TRIAL_SPP = 4                   # the samples per pixel whose time a trial measu
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
 LATTICE_PILOT_SPP = 2           # and in a crop larger than the moment film keeps (``pilot_spp``)
 TRIAL_SAMPLES = 1 << 15         # a trial's samples at most, where that leaves it at least 1 spp (trial_spp)
-TRIAL_PIXELS = 1 << 16          # a trial in a larger crop traces camera samples in every k-th pixel (trial_stride)
+TRIAL_PIXELS = 1 << 15          # a trial in a larger crop traces camera samples in every k-th row (trial_stride)
 TRIAL_SEED = 1 << 30            # pilot and trial seeds: the render's seed plus this, plus 0, 1, 2, ...
 MAX_MISSED = 1e-3               # a candidate that misses more of the image is not chosen
 DENOM = 1e-2                    # relative MSE: V / (I^2 + DENOM), as the benchmarks measure it
@@ -236,15 +238,17 @@ def trial_stride(sensor):
     return 1 if pixels <= TRIAL_PIXELS else -(-pixels // TRIAL_PIXELS)
 
 
-def trial_pixels(sensor, k=None):
-    """(the crop's pixels, those a trial traces camera samples in: every k-th row, ``trial_stride``)."""
+def trial_pixels(sensor, k=None, row=0):
+    """(the crop's pixels, those a trial traces camera samples in: every k-th row from ``row``,
+    ``trial_stride``)."""
     crop = sensor.film().crop_size()
     w, h = int(crop[0]), int(crop[1])
     k = trial_stride(sensor) if k is None else k
-    return w * h, w * -(-h // k)
+    return w * h, w * -(-(h - row) // k)
 
 
 _WARM = set()       # the trial renders (settings, crop, spp) run once in this process (time_trial)
+_TRIAL_ROWS = itertools.count()     # a large crop's trials start at rows 0, 1, ..., k - 1 in turn (time_trial)
 
 
 def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
@@ -264,14 +268,15 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
     crop = tuple(int(x) for x in sensor.film().crop_size()) if sensor is not None else None
     key = (id(scene), repr(sorted(trial.settings.items())), trial.pixel_counts is not None, crop, spp)
     k = trial_stride(sensor)
-    pixels, traced = trial_pixels(sensor, k) if sensor is not None else (1, 1)
+    row = next(_TRIAL_ROWS) % k         # (the trials' images cover the crop's rows in turn: ``denominator``)
+    pixels, traced = trial_pixels(sensor, k, row) if sensor is not None else (1, 1)
     if k > 1:
-        integ.trial_stride = k
+        integ.trial_stride, integ.trial_row = k, row
 
     def render():
         trial.renders += 1
         image = integ.render(scene, sensor, seed=trial_seed(seed, trial.renders - 1), spp=spp)
-        add_image(trial, image, spp, k)
+        add_image(trial, image, spp, k, row)
     measure = (lambda: kernel_seconds(render)) if k == 1 else (lambda: kernel_seconds(render, lattice_weight(pixels, traced)))
     if key not in _WARM:
         _WARM.add(key)
@@ -311,17 +316,19 @@ def trial_seed(seed, k):
     return seed + TRIAL_SEED + 2 * k + 1
 
 
-def add_image(trial, image, spp, rows=1):
+def add_image(trial, image, spp, rows=1, first=0):
     """Adds the image of one of ``trial``'s renders (``spp`` samples per pixel) to its sum: the
     mean of its colour channels at the pixels the pilots' film keeps (``trial.lattice``), of a
-    trial of every ``rows``-th row (``trial_stride``) at those rows only (its camera samples;
+    trial of every ``rows``-th row from row ``first`` (``trial_stride``) at those rows only (its camera samples;
     its light image covers the crop, its splats scaled to stand for every pixel's light
-    subpaths), each pixel's count in ``image_count``. Not in spectral variants, whose pilots'
+    subpaths, so that its rows' mean is unbiased; weighed in the denominator as the whole
+    crop's: its splats' larger variance mattered less there than the pilots' image's weight, which
+    V correlates with), each pixel's count in ``image_count``. Not in spectral variants, whose pilots'
     image is the mean over each sample's wavelengths, not the film's RGB; nor before a pilot."""
     if mi.is_spectral or image is None or trial.pilot_image is None:
         return
     a = np.asarray(image, dtype=np.float64)
-    covered = np.broadcast_to((np.arange(a.shape[0]) % rows == 0)[:, None], a.shape[:2]).reshape(-1)
+    covered = np.broadcast_to((np.arange(a.shape[0]) % rows == first)[:, None], a.shape[:2]).reshape(-1)
     a = a.reshape(-1, a.shape[-1])[:, :1 if mi.is_monochromatic else 3].mean(axis=1)
     if trial.lattice is not None:
         a, covered = a[::trial.lattice[2]], covered[::trial.lattice[2]]

@@ -430,14 +430,14 @@ def camera_pixels(ps):
     """The crop pixel of each camera sample of pass ``ps``: spp_pass consecutive samples a pixel
     from pixel_start (every pixel_stride-th pixel in technique auto's pilot of a large crop:
     integrator.lattice_step; every pixel_stride-th row in its timed trials: the run j // run of
-    ``pixel_run`` pixels starts at pixel (j // run) run stride)."""
+    ``pixel_run`` pixels starts at pixel (j // run) run stride + pixel_offset)."""
     pixel = dr.arange(mi.UInt32, ps.n) // dr.opaque(mi.UInt32, ps.spp_pass) + dr.opaque(mi.UInt32, ps.pixel_start)
     if ps.pixel_stride == 1:
         return pixel
     if ps.pixel_run == 1:
         return pixel * ps.pixel_stride
     run = dr.opaque(mi.UInt32, ps.pixel_run)
-    return pixel // run * (run * ps.pixel_stride) + pixel % run
+    return pixel // run * (run * ps.pixel_stride) + pixel % run + dr.opaque(mi.UInt32, ps.pixel_offset)
 
 
 class PixelLanes:

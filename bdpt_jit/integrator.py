@@ -73,7 +73,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.moment_film = None         # its moments.MomentFilm after a render
         self.pixel_counts = None        # technique auto's per-pixel candidate: pixel_counts.PixelCounts
         self.last_chosen = None         # technique auto: the integrator of its last decision (renders on without choosing)
-        self.trial_stride = 1           # technique auto's timed trial of a large crop: camera samples every k-th pixel (auto.trial_stride)
+        self.trial_stride = 1           # technique auto's timed trial of a large crop: camera samples every k-th row (auto.trial_stride)
+        self.trial_row = 0              # from this row (0 .. k - 1)
 
     # ------------------------------------------------------------------ setup
     def make_context(self, scene, sensor, spp=1) -> Context:
@@ -350,8 +351,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         (which advances the merge iteration count)."""
         k = self.camera_stride(ctx)
         trial = self.trial_stride > 1       # (technique auto's timed trial of a large crop: camera_stride)
-        run = ctx.sensor.film().crop_size()[0] if trial else 1      # (its rows)
-        v0, n_cam = camera_lattice(k, pixel_start, pixel_count, run)
+        run = int(ctx.sensor.film().crop_size()[0]) if trial else 1      # (its rows)
+        row = self.trial_row if trial else 0
+        v0, n_cam = camera_lattice(k, pixel_start, pixel_count, run, row)
         n = spp_pass * n_cam
         index = i if k == 1 else LATTICE_PASS + i
         sampler = pass_sampler(ctx, spp_pass, seed, index, max(n, 1))
@@ -387,7 +389,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         ps.pixel_sampler = pixel_sampler(ctx, spp_pass, seed, index, max(n, 1))
         if trial:
-            ps.pixel_stride, ps.pixel_run = k, run
+            ps.pixel_stride, ps.pixel_run, ps.pixel_offset = k, run, row * run
         elif k > 1:
             self.lattice_pass_state(ctx, ps, seed, i, k, n_light)
         if ctx.light_cache is not None:
@@ -586,12 +588,12 @@ def lattice_step(ctx):
     return m.step if m is not None and m.step > 1 and not mi.is_spectral else 1
 
 
-def camera_lattice(k, pixel_start, pixel_count, run=1):
+def camera_lattice(k, pixel_start, pixel_count, run=1, first=0):
     """(v0, count): the lattice pixels v0 .. v0 + count - 1 among crop pixels [pixel_start,
-    pixel_start + pixel_count), of the lattice of the first ``run`` pixels of every k run
-    (camera_path.camera_pixels; k: BDPTIntegrator.camera_stride; run 1: every k-th pixel)."""
+    pixel_start + pixel_count), of the lattice of run ``first`` of every k runs of ``run``
+    pixels (camera_path.camera_pixels; k: BDPTIntegrator.camera_stride; run 1: every k-th pixel)."""
     def below(x):           # lattice pixels before crop pixel x
-        return x // (run * k) * run + min(x % (run * k), run)
+        return x // (run * k) * run + min(max(x % (run * k) - first * run, 0), run)
     v0 = below(pixel_start)
     return v0, below(pixel_start + pixel_count) - v0
 

@@ -162,6 +162,7 @@ class PassState:
         self.pixel_start = pixel_start  # the pass's first crop pixel (in units of pixel_stride)
         self.pixel_stride = 1           # camera samples in every pixel_stride-th crop pixel (auto's pilot: lattice_step)
         self.pixel_run = 1              # or in every pixel_stride-th run of pixel_run consecutive ones (auto's trials: rows)
+        self.pixel_offset = 0           # from this crop pixel (auto's trials: their first row's)
         self.film = film                # film.FilmAccumulator
         self.mis = mis                  # mis.MIS of the pass (MIS.for_pass: its merging radius)
         self.spectral = None            # spectral variants: (wavelengths, their sampling weight) per sample

@@ -10,6 +10,8 @@ the sample counts in the MIS weights (mis.py, [Veach 9.2.2] n_i p_i).
   (the same expectation: the cache changes which light vertices a camera vertex meets, not what
   a strategy estimates), which is what a wrong count factor in an estimator would break."""
 
+import itertools
+
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -1133,9 +1135,10 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
     camera sample (not one a sample of every pixel) and merging at sqrt(k) times the render's
     radius: pi r^2 N, the light vertices a merge finds and the weights' eta, stay the whole
     crop's. Under a constant sky each light subpath is one ray that escapes, so the counts are
-    exact; also in passes that hold no row of the lattice. Planted: every k-th pixel instead of
-    rows, the light subpaths of every pixel, the radius unscaled, or a pass without a row
-    rendered: each fails."""
+    exact; also from another first row (``trial_row``: the trials of a decision take rows 0, 1,
+    ..., k - 1 in turn, so that their images cover the crop), and in passes that hold no row of
+    the lattice. Planted: every k-th pixel instead of rows, the light subpaths of every pixel,
+    the radius unscaled, a pass without a row rendered, or the first row left at 0: each fails."""
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
     scene = mi.load_dict(_sky_box_filter(16, 16))        # 256 pixels: k = 4, rows 0, 4, 8, 12
@@ -1143,19 +1146,21 @@ def test_a_large_crop_s_trial_traces_every_k_th_row(monkeypatch):
     assert auto.trial_stride(sensor) == 4 and auto.trial_pixels(sensor) == (256, 64)
     assert auto.trial_stride(mi.load_dict(_sky_only(8, 8)).sensors()[0]) == 1
     assert auto.trial_pixels(mi.load_dict(_sky_only(16, 15)).sensors()[0]) == (240, 64)     # (rows 0, 4, 8, 12)
+    assert auto.trial_pixels(mi.load_dict(_sky_only(16, 15)).sensors()[0], 4, 3) == (240, 48)   # (rows 3, 7, 11)
     info = {}
-    for k, per_pass in ((1, None), (4, None), (4, 7)):      # (7 samples a pass: passes without a row)
+    for k, per_pass, row in ((1, None, 0), (4, None, 0), (4, 7, 0), (4, None, 1), (4, 7, 3)):
+        # (7 samples a pass: passes without a row of the lattice)
         integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'technique': 'vcm', 'merge_everywhere': True,
                               'statistics': True, **({'samples_per_pass': per_pass} if per_pass else {})})
-        integ.trial_stride = k
+        integ.trial_stride, integ.trial_row = k, row
         image = np.array(integ.render(scene, sensor, seed=0, spp=2))[..., 0]
-        info[k, per_pass] = integ.last_render_info
-        rows = np.arange(16) % k == 0
-        assert np.all(image[rows] > 0) and np.all(image[~rows] == 0)
-    assert info[1, None]['rays']['camera_rays'] == info[1, None]['rays']['light_rays'] == 2 * 256
-    for per_pass in (None, 7):
-        assert info[4, per_pass]['rays']['camera_rays'] == info[4, per_pass]['rays']['light_rays'] == 2 * 64
-    assert info[4, None]['merge_radius'] == pytest.approx(2.0 * info[1, None]['merge_radius'], rel=1e-6)
+        info[k, per_pass, row] = integ.last_render_info['rays'] | {'radius': integ.last_render_info['merge_radius']}
+        rows = np.arange(16) % k == row
+        assert np.all(image[rows] > 0) and np.all(image[~rows] == 0), (k, per_pass, row)
+    assert info[1, None, 0]['camera_rays'] == info[1, None, 0]['light_rays'] == 2 * 256
+    for key in ((4, None, 0), (4, 7, 0), (4, None, 1), (4, 7, 3)):
+        assert info[key]['camera_rays'] == info[key]['light_rays'] == 2 * 64, key
+    assert info[4, None, 0]['radius'] == pytest.approx(2.0 * info[1, None, 0]['radius'], rel=1e-6)
     for k in (1, 4):        # a cache of half a light subpath a camera sample: of the lattice's samples
         integ = mi.load_dict({'type': 'bdpt', 'max_depth': 3, 'light_paths': 0.5, 'connections': 1,
                               'statistics': True})
@@ -1196,6 +1201,7 @@ def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     from bdpt_jit import auto
     monkeypatch.setattr(auto, 'TRIAL_PIXELS', 64)
     monkeypatch.setattr(auto, '_WARM', set())
+    monkeypatch.setattr(auto, '_TRIAL_ROWS', itertools.count(1))       # (this trial from row 1)
     scene = mi.load_dict(_sky_box_filter(16, 16))
     history = [(64, 0.010), (3 * 256, 0.002), (256, 0.001), (128, 0.004)]     # (width, seconds)
 
@@ -1216,7 +1222,7 @@ def test_a_lattice_trial_s_time_is_the_crop_s(monkeypatch):
     assert made[-1].trial_stride == 4
     assert trial.seconds == pytest.approx((0.010 * 4 + 0.002 + 0.001 + 0.004 * 4) / 2, rel=1e-12)
     # its image at its rows (under the sky, 0.5 each), those rows' counts one a render
-    rows = np.repeat(np.arange(16) % 4 == 0, 16)
+    rows = np.repeat(np.arange(16) % 4 == 1, 16)
     assert trial.renders >= 1 and trial.images == trial.renders
     np.testing.assert_array_equal(trial.image_count, rows * trial.renders)
     np.testing.assert_allclose(trial.image_sum, rows * 0.5 * trial.renders, rtol=1e-6)
