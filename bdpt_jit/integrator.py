@@ -18,7 +18,7 @@ from . import params as P
 from .camera_path import CameraTracer
 from .context import Context
 from .film import FilmAccumulator
-from .light_cache import PILOT_PASS, LightCache, counts as cache_counts, pilot
+from .light_cache import PILOT_PASS, PILOT_PATHS, LightCache, counts as cache_counts, pilot
 from .light_path import LightTracer
 from .beams import BeamGather, BeamGrid
 from .merge import MergeSchedule, Merger, PhotonGrid
@@ -139,7 +139,10 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
         if ctx.light_cache is not None:
-            self.start_cache(ctx, seed, max(256, int(ctx.light_cache.ratio * spp * n_pixels)))
+            paths = max(256, int(ctx.light_cache.ratio * spp * n_pixels))
+            if self.trial_stride > 1:   # (a trial's kernels count k times, auto.lattice_weight: its pilot's too)
+                paths = max(256, min(paths, PILOT_PATHS) // self.trial_stride)
+            self.start_cache(ctx, seed, paths)
         t0 = _time.perf_counter()
         samples_done, interrupted, levels_used = self.run_passes(ctx, acc, seed, spp, n_pixels)
         # Each light path splatted 1/spp; if the render stopped early, fewer light paths were
