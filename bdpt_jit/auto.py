@@ -227,8 +227,9 @@ def trial_stride(sensor):
     time in proportion to them, and merging everywhere in proportion to their square (its
     iterations' light vertices within the radius, at a radius fixed in scene units):
     veach-bidir at 1024 x 1024, the merging cache 1 x 1's trial of 1 spp 37 s, the decision
-    59-64 s against a 16-spp render of 43 s. Rows, not every k-th pixel: at k = 16 pt's camera
-    rays, 16 pixels apart, took 1.43 times the whole crop's time a sample. Not fewer pixels with
+    59-64 s against a 16-spp render of 43 s. Rows, not every k-th pixel: their camera rays are
+    as coherent as the crop's (at k = 16 pt's time came out 1.43 times the crop's with rays 16
+    pixels apart, 1.30 with rows; the rest was the film's kernels, ``lattice_weight``). Not fewer pixels with
     all their light subpaths: a kernel's fixed cost scaled up with the pixels left out (every
     56th pixel of a 1280 x 720 crop: pt's seconds per spp came out 1.42 times the whole
     image's, vcm's 0.67). 1 in spectral variants (as the pilot's lattice, integrator.lattice_step)."""
@@ -241,10 +242,11 @@ def trial_stride(sensor):
 def trial_pixels(sensor, k=None, row=0):
     """(the crop's pixels, those a trial traces camera samples in: every k-th row from ``row``,
     ``trial_stride``)."""
+    from .integrator import camera_lattice
     crop = sensor.film().crop_size()
     w, h = int(crop[0]), int(crop[1])
     k = trial_stride(sensor) if k is None else k
-    return w * h, w * -(-(h - row) // k)
+    return w * h, camera_lattice(k, 0, w * h, w, row)[1]
 
 
 _WARM = set()       # the trial renders (settings, crop, spp) run once in this process (time_trial)

@@ -1057,8 +1057,9 @@ def test_auto_pilots_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
     LATTICE_PILOT_SPP in a larger one (the lattice pilot, whose light side traces every pixel's
     light subpaths). The pilot renders at that count and the moment film's estimates scale by
     it (a V of the other count is off by their ratio); the denominator weighs the pilots'
-    image by their samples (an image of a given v and n spp has weight n / v). Planted: estimates
-    at PILOT_SPP, or the denominator's weight at PILOT_SPP: each fails."""
+    image by their samples (an image of a given v and n spp has weight n / v), and a trial's image
+    of every other row where it covers a pixel only. Planted: estimates at PILOT_SPP, the
+    denominator's weight at PILOT_SPP, or a lattice trial's image counted at every pixel: each fails."""
     from bdpt_jit import auto, moments
     assert auto.LATTICE_PILOT_SPP % 2 == 0 and auto.LATTICE_PILOT_SPP < auto.PILOT_SPP
     for (w, h), want in {(128, 128): auto.PILOT_SPP, (129, 128): auto.LATTICE_PILOT_SPP}.items():
@@ -1091,6 +1092,13 @@ def test_auto_pilots_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
     pilot_w, trial_w = 2 / 0.5, 1 / 0.5         # v: both trials' own_var (rounds=0)
     want = ((pilot_w * 2.0 + trial_w * 5.0) / (pilot_w + trial_w)) ** 2 + auto.DENOM
     np.testing.assert_allclose(den, want, rtol=1e-12)
+    # a trial of every other row (auto.add_image): its image counts where it covers a pixel only,
+    # the pilot's alone elsewhere (planted: its render count as every pixel's, fails)
+    covered = np.arange(film.count) % 2 == 0
+    trials[1].image_sum, trials[1].image_count = np.where(covered, 5.0, 0.0), covered.astype(np.float64)
+    den = auto.denominator(trials, rounds=0)
+    mean = np.where(covered, (pilot_w * 2.0 + trial_w * 5.0) / (pilot_w + trial_w), 2.0)
+    np.testing.assert_allclose(den, auto.box3_lattice(mean, *trials[0].lattice) ** 2 + auto.DENOM, rtol=1e-12)
 
 
 def test_auto_times_a_large_crop_at_fewer_samples_per_pixel(monkeypatch):
