@@ -108,23 +108,7 @@ class Context:
         self.hide_emitters = settings['hide_emitters']
         self.has_delta = scene_has_delta_bsdf(scene)
         self.refracts = scene_refracts(scene)
-        merge_everywhere = bool(settings.get('merge_everywhere', False))
-        technique = settings['technique']
-        if technique == 'vcm' and not merge_everywhere and not self.has_delta:
-            technique = 'bdpt'      # merges only behind delta vertices, and the scene has none (mis.py)
-        self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
-                                                self.camera, self.hide_emitters)
-        self.ad = ad
-        self.ad_geometry = tuple(ad_geometry)
-        if ad_geometry:
-            # derivatives with respect to geometry: light-tracing splats land where their vertex
-            # projects, and moving geometry moves them across pixels (a boundary term bdpt does
-            # not have): their strategies leave the partition of unity (gradients.py)
-            self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
-                                                    _NoSplats(self.camera), self.hide_emitters)
-        # geometry next to mirrors and glass: chains differentiated from the camera side only
-        self.mis = MIS(settings['mis'], self.strategies, detached=ad,
-                       camera_chains=bool(ad_geometry) and self.has_delta, merge_everywhere=merge_everywhere)
+        technique = self.strategy_setup(settings, ad, ad_geometry)
         self.time = sensor.shutter_open()
         self.rr_depth = settings['rr_depth']
         self.exact_adjoint = (scene_perturbs_normals(scene)
@@ -149,6 +133,39 @@ class Context:
         # opaque: literals would be baked into the kernels and recompile them for every spp
         self.inv_spp = dr.opaque(mi.Float, 1.0 / spp)
         self.splat_scale = dr.opaque(mi.Float, FilmAccumulator.splat_scale(spp))
+        self.output_setup(settings)
+        self.moments = None         # moments.MomentFilm of technique auto's pilot (moments.instrument)
+        self.pixel_counts = None    # pixel_counts.PixelCounts of auto's per-pixel candidate (BDPTIntegrator.per_pixel)
+        self.stats = RayStats() if settings['statistics'] else None
+        self.sampling = ADSampling(self) if ad else Sampling(self)
+        self.light_cache = self.cache_settings(settings)
+        self.evaluate_tables()
+
+    def strategy_setup(self, settings, ad, ad_geometry):
+        """The strategies the scene and technique sample (StrategySet) and their weights (MIS);
+        returns the technique they follow (vcm without a delta BSDF: bdpt)."""
+        self.ad = ad
+        self.ad_geometry = tuple(ad_geometry)
+        merge_everywhere = bool(settings.get('merge_everywhere', False))
+        technique = settings['technique']
+        if technique == 'vcm' and not merge_everywhere and not self.has_delta:
+            technique = 'bdpt'      # merges only behind delta vertices, and the scene has none (mis.py)
+        self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
+                                                self.camera, self.hide_emitters)
+        if ad_geometry:
+            # derivatives with respect to geometry: light-tracing splats land where their vertex
+            # projects, and moving geometry moves them across pixels (a boundary term bdpt does
+            # not have): their strategies leave the partition of unity (gradients.py)
+            self.strategies = StrategySet.for_scene(technique, self.max_depth_edges, self.emitters,
+                                                    _NoSplats(self.camera), self.hide_emitters)
+        # geometry next to mirrors and glass: chains differentiated from the camera side only
+        self.mis = MIS(settings['mis'], self.strategies, detached=ad,
+                       camera_chains=bool(ad_geometry) and self.has_delta, merge_everywhere=merge_everywhere)
+        return technique
+
+    def output_setup(self, settings):
+        """What a pass writes besides the image: AOVs and strategy layers, checked against the
+        variant."""
         self.aovs = parse_aovs(settings.get('aovs', ''))
         self.aov_names = aov_channel_names(self.aovs)
         if self.aovs and mi.is_spectral:
@@ -157,14 +174,8 @@ class Context:
         if settings['strategy_images'] and not mi.is_rgb:
             raise ParameterError(f"bdpt: parameter 'strategy_images' needs an RGB variant (the layers are "
                                  f"RGB images), not '{mi.variant()}'")
-        self.layers = (StrategyLayers(sensor.film(), max_length=min(self.max_depth_edges, 8))
+        self.layers = (StrategyLayers(self.sensor.film(), max_length=min(self.max_depth_edges, 8))
                        if settings['strategy_images'] else None)
-        self.moments = None         # moments.MomentFilm of technique auto's pilot (moments.instrument)
-        self.pixel_counts = None    # pixel_counts.PixelCounts of auto's per-pixel candidate (BDPTIntegrator.per_pixel)
-        self.stats = RayStats() if settings['statistics'] else None
-        self.sampling = ADSampling(self) if ad else Sampling(self)
-        self.light_cache = self.cache_settings(settings)
-        self.evaluate_tables()
 
     @property
     def record(self):

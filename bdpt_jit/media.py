@@ -42,6 +42,8 @@ Distance densities (``DistanceSample.pdf_fwd``/``pdf_rev``, ``EdgeTransmittance.
 Both kinds in one edge multiply (the channel choice applies in the homogeneous parts only).
 """
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -54,6 +56,7 @@ PHASE_RADIANCE = mi.PhaseFunctionContext(None, mi.TransportMode.Radiance)
 PHASE_IMPORTANCE = mi.PhaseFunctionContext(None, mi.TransportMode.Importance)
 
 
+@dataclass(frozen=True)
 class MediaInfo:
     """What the scene's media need, as plain Python values (trace-time constants):
     any (a medium anywhere), heterogeneous (one is not homogeneous: ratio and delta tracking
@@ -70,12 +73,15 @@ class MediaInfo:
     alone: walks and edges meet it, scene_check.null_emitter_shape). Built by
     scene_check.media_info."""
 
-    def __init__(self, any_medium=False, heterogeneous=False, chromatic=False, gray=False, partial_null=False,
-                 varying_albedo=False, any_null=False, exclude_null=False, null_emitters=False):
-        self.any, self.heterogeneous, self.chromatic = any_medium, heterogeneous, chromatic
-        self.gray, self.partial_null, self.varying_albedo = gray, partial_null, varying_albedo
-        self.any_null, self.exclude_null = any_null, exclude_null
-        self.null_emitters = null_emitters
+    any: bool = False
+    heterogeneous: bool = False
+    chromatic: bool = False
+    gray: bool = False
+    partial_null: bool = False
+    varying_albedo: bool = False
+    any_null: bool = False
+    exclude_null: bool = False
+    null_emitters: bool = False
 
 
 def has_medium(medium):

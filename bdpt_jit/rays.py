@@ -300,13 +300,15 @@ def spawn_to(start, end, time, far_rel=ERR_REL, wavelengths=None):
     return mi.Ray3f(o, d, dist * (1.0 - far_rel), time, wl)
 
 
-def spawn_to_emitter(p, n, err, ds, err_q, time, far_rel=ERR_REL, wavelengths=None, infinite=False):
-    """Shadow ray to an emitter sample ``ds`` (DirectionSample3f): ``spawn_to`` its point, or an
-    unbounded ray in its direction where the sample is at infinity (``infinite``: the lanes of
-    environment and directional emitters, or ``ds.dist`` infinite). Mitsuba's infinite emitters
+def spawn_to_emitter(start, ds, err_q, time, far_rel=ERR_REL, wavelengths=None, infinite=False):
+    """Shadow ray from ``start`` = (p, n, err), as spawn_to's, to an emitter sample ``ds``
+    (DirectionSample3f): ``spawn_to`` its point, or an unbounded ray in its direction where the
+    sample is at infinity (``infinite``: the lanes of environment and directional emitters, or
+    ``ds.dist`` infinite). Mitsuba's infinite emitters
     put their samples at twice the radius of the scene's bounding sphere, which an invalid box
     (merged rectangles: scene_bbox) makes 2e-4 from the vertex: the ray then passed every wall."""
-    to = spawn_to((p, n, err), (ds.p, ds.n, err_q), time, far_rel, wavelengths)
+    p, n, err = start
+    to = spawn_to(start, (ds.p, ds.n, err_q), time, far_rel, wavelengths)
     inf = ~dr.isfinite(ds.dist) | infinite
     o_inf = offset_origin(p, n, err, ds.d)
     return mi.Ray3f(dr.select(inf, o_inf, to.o), dr.select(inf, ds.d, to.d),

@@ -553,7 +553,7 @@ def media_info(scene: mi.Scene, sensor: mi.Sensor = None):
     whether every medium is gray (beam merging: beams.py), whether a BSDF is partly null."""
     from .media import MediaInfo
     media = scene_media(scene, sensor)
-    return MediaInfo(any_medium=bool(media),
+    return MediaInfo(any=bool(media),
                      heterogeneous=any(not m.is_homogeneous() for m in media),
                      chromatic=any(m.is_homogeneous() and _chromatic(m) for m in media),
                      gray=all(_gray(m) for m in media),

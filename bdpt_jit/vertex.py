@@ -114,7 +114,7 @@ class Vertex:
     def spawn_to_emitter(self, ctx, ds):
         """A shadow ray to the emitter sample ``ds`` (rays.spawn_to_emitter)."""
         si = self.si
-        return spawn_to_emitter(si.p, si.n, self.err, ds, ctx.emitters.error_at(ds), si.time,
+        return spawn_to_emitter((si.p, si.n, self.err), ds, ctx.emitters.error_at(ds), si.time,
                                 ctx.offsets.far_rel, si.wavelengths, ctx.emitters.kinds(ds.emitter).infinite)
 
 
