@@ -30,8 +30,10 @@ the cells it crosses (Amanatides and Woo's traversal), clipped to the bounding b
 vertices' balls; each cell covers an interval [t_enter, t_exit) of the segment, and a light
 vertex counts in the cell whose interval holds its projection s: once, whichever of its cells
 the segment crosses and whatever buckets they share. Cells are wider than 2 r where the light
-vertices are sparse (the cost is cells crossed plus vertices tested: a cell of
-(V / 2 n)^(1/3) for n vertices in a volume V balances the two)."""
+vertices are sparse: a cell holds CELL_VERTICES of an iteration's vertices on average (the cost is
+cells crossed plus vertices tested, and a cell crossed costs more than a vertex tested: its
+bucket's two words are a random read of a table of 4 words a vertex, the vertices' positions are
+read in bucket order)."""
 
 import drjit as dr
 import mitsuba as mi
@@ -44,6 +46,11 @@ from .merge import _PRIMES
 from .vertex import RADIANCE
 
 _WIDE = 1e30           # an axis the direction does not move along: its next crossing
+# an iteration's vertices in a cell on average, where that makes cells wider than 2 r: 0.5 (a
+# cell crossed costing what a vertex tested costs) put vcm's camera kernel 8-12% above 3 on
+# scenes/media/volumetric-caustic.xml at 128 x 128 and 256 x 256 (16 spp; at 64 x 64 the same
+# either way; the least of 4 renders a setting, 1.5 - 2.5 times 0.5's cell tried)
+CELL_VERTICES = 3.0
 
 
 class BeamGrid:
@@ -100,13 +107,14 @@ class BeamGrid:
         dr.eval(self.lo, self.hi)
 
     def cell_size(self, bbox, schedule, count):
-        """At least 2 r (the pass's first, largest radius); (V / 2 n)^(1/3) for the n vertices of
-        an iteration (``count`` in the pass) in the volume V of their box, where that is larger."""
+        """At least 2 r (the pass's first, largest radius); (CELL_VERTICES V / n)^(1/3) for the n
+        vertices of an iteration (``count`` in the pass) in the volume V of their box, where that
+        is larger."""
         n = max(count / max(int(schedule.spp_pass[0]), 1), 1.0)
         ext = [max(float(self.hi[i][0] - self.lo[i][0]), 0.0) for i in range(3)]
         volume = max(ext[0] * ext[1] * ext[2], 1e-30)
         return max(2.0 * schedule.r1 * float(schedule.first[0]) ** (0.5 * (schedule.alpha - 1.0)),
-                   (volume / (2.0 * n)) ** (1.0 / 3.0))
+                   (CELL_VERTICES * volume / n) ** (1.0 / 3.0))
 
     def sort(self, p, r, group, slot, valid, size):
         """The counting sort (as merge.PhotonGrid's) of the entries (vertex, corner q < 8) of the
