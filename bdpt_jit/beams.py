@@ -67,10 +67,9 @@ class BeamGrid:
 
     def __init__(self, scene, store, schedule):
         self.store, self.schedule = store, schedule
-        n_slots = store.n * store.capacity
         bbox = scene_bbox(scene)
         self.origin = mi.Point3f(bbox.min) if bbox.valid() else mi.Point3f(0.0)
-        slot = self.medium_slots(store, n_slots)       # (a few of the slots: compacted first)
+        slot = store.stored_slots(in_medium=True)      # (a few of the slots: compacted first)
         empty = dr.width(slot) == 0
         if empty:                   # no medium vertex: one masked-off entry (slot 0 is allocated)
             slot = mi.UInt32([0])
@@ -88,16 +87,6 @@ class BeamGrid:
             size *= 2
         self.mask = dr.opaque(mi.UInt32, size - 1)
         self.sort(p, r, group, slot, valid, size)
-
-    @staticmethod
-    def medium_slots(store, n_slots):
-        """The slots of the store that hold a medium vertex (only their in_medium word read)."""
-        slot = dr.arange(mi.UInt32, n_slots)
-        level = slot // store.n_opaque
-        valid = level < dr.gather(mi.UInt32, store.count, slot - level * store.n_opaque)
-        word = slot * (store.record.packets() * 4) + store.record.word_of('in_medium')
-        valid &= dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, store.v, word, valid)) != 0
-        return dr.compress(valid)
 
     def bounds(self, p, r, valid):
         """lo, hi: the box around every valid vertex's ball (empty where there is none)."""

@@ -330,7 +330,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                 c = self.cache_run[1] if ctx.pixel_counts is None else max(ctx.pixel_counts.c_max, 1)
                 ps.cache = LightCache(ps.store, c)
         if ctx.strategies.trace_merge:
-            ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
+            ps.merger = Merger(ctx, PhotonGrid(ctx.scene, ps.store, ps.schedule, surface_only=ctx.beams), ps.mis)
             if ctx.beams:
                 ps.beams = BeamGather(ctx, BeamGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last

@@ -85,10 +85,13 @@ class PhotonGrid:
     mask            table size - 1 (a power of two), opaque
     start           per bucket: its first entry (and the next bucket's: its end)
     slots           the store's slots in bucket order
-    points          and their positions, with their iteration's bits in w (Merger.near)"""
+    points          and their positions, with their iteration's bits in w (Merger.near)
 
-    def __init__(self, scene, store, schedule):
-        slot = store.stored_slots()
+    ``surface_only``: the vertices on surfaces alone (where media merge by beams, beams.py, no
+    camera vertex merges with a medium vertex here: Merger.merge_one)."""
+
+    def __init__(self, scene, store, schedule, surface_only=False):
+        slot = store.stored_slots(in_medium=False if surface_only else None)
         n = dr.width(slot)
         size = 1               # buckets: BUCKETS times the entries, so that empty cells rarely share one
         while size < max(BUCKETS * n, 1):

@@ -45,6 +45,23 @@ def random_store(rng, n, levels=2):
     return store, (np.concatenate(ps), np.concatenate(paths), np.concatenate(valid))
 
 
+def test_stored_slots_split_into_medium_and_surface_vertices():
+    """LightStore.stored_slots(in_medium=...): the beam grid's vertices (inside media) and the
+    photon grid's where media merge by beams (on surfaces) are the stored vertices of each kind,
+    in increasing order, and together every stored vertex once."""
+    rng = np.random.default_rng(7)
+    n = 500
+    store, (p, path, medium_stored) = random_store(rng, n, levels=3)
+    every = np.array(store.stored_slots())
+    med = np.array(store.stored_slots(in_medium=True))
+    surf = np.array(store.stored_slots(in_medium=False))
+    expected_med = np.nonzero(medium_stored)[0]          # (numpy's order: level-major, as the slots)
+    assert np.array_equal(med, expected_med)
+    assert np.all(np.diff(surf) > 0) and np.all(np.diff(med) > 0)
+    assert np.array_equal(np.sort(np.concatenate([med, surf])), every)
+    assert 0 < len(surf) < len(every)
+
+
 def counting(self, k, interval, seg, group_r2, active, tap=None):
     """BeamGather.merge_one replaced by 1 for every entry the walk counts."""
     ok = self.candidate(k, interval, seg, group_r2, active)[0]
