@@ -1,5 +1,6 @@
 """Merging inside media by beams (bdpt_jit/beams.py): the grid walk finds each light vertex
-within r of a camera segment once, the strategy's MIS factor reaches the kernels, and the
+within r of a camera segment once (and merge.py's ball query each one within r of a point, its
+estimate normalised per unit volume in a medium, per unit area on a surface), the strategy's MIS factor reaches the kernels, and the
 choice between beams and balls follows the scene's media. The estimate's value is checked by
 the renders of tests/test_media_render.py (vm and vcm against volpath, the white furnace),
 its weights by tests/test_mis_partition.py (beams: 1 / sigma_t of the vertex)."""
@@ -14,7 +15,7 @@ import pytest
 from test_media_render import BATCHES, SCENES, bdpt, render_batches, volpath_reference
 
 from bdpt_jit.beams import BeamGather, BeamGrid, Segment
-from bdpt_jit.merge import MergeSchedule, scene_radius
+from bdpt_jit.merge import Merger, MergeSchedule, PhotonGrid, scene_radius
 from bdpt_jit.store import LightStore, make_record_type
 
 SPP_PASS = 2        # iterations in the pass: sample / light subpath idx belongs to idx % 2
@@ -109,6 +110,52 @@ def test_each_light_vertex_within_r_of_a_segment_counts_once(monkeypatch, n, rad
     got = np.round(got)
     bad = np.nonzero((got < lo) | (got > hi))[0]
     assert bad.size == 0, f'segments {bad[:5]}: counted {got[bad[:5]]}, brute force {lo[bad[:5]]}..{hi[bad[:5]]}'
+
+
+def counting_balls(self, k, v, sub, active, inv_factor=None, tap=None):
+    """Merger.merge_one replaced by 1 for every entry the query finds."""
+    return dr.select(active, mi.Spectrum(1.0), 0.0), ()
+
+
+@pytest.mark.parametrize('in_medium', [True, False])
+def test_a_ball_merge_counts_each_light_vertex_within_r_once(monkeypatch, in_medium):
+    """merge.py's query (the photon grid, the ball around a camera vertex) at random points
+    against the stored vertices of two iterations (both kinds: the merge's own test of kinds is
+    left to it): each vertex of the query's iteration within r counts once (brute force, with
+    margins of 1e-4 r for float32), and the estimate is that count over the density's
+    measure, 4/3 pi r^3 N inside a medium, pi r^2 N on a surface, exactly (planted: a 1%
+    error in either, or a grid cell lost, fails)."""
+    rng = np.random.default_rng(5)
+    n, radius_rel = 30000, 0.05
+    scene = mi.load_dict({'type': 'scene', 'box': {'type': 'cube'}})
+    store, _ = random_store(rng, n)
+    slot = store.stored_slots()
+    first = dr.gather(mi.Vector4f, store.v, slot * store.record.packets())
+    p = np.stack([np.array(first.x), np.array(first.y), np.array(first.z)], axis=1)
+    iteration = (np.array(slot) % n) % SPP_PASS
+    schedule = MergeSchedule(scene, radius_rel, 1.0, 1, SPP_PASS, n // SPP_PASS)
+    r = radius_rel * scene_radius(scene)
+    monkeypatch.setattr(Merger, 'merge_one', counting_balls)
+    merger = Merger(SimpleNamespace(media=SimpleNamespace(info=None), moments=None),
+                    PhotonGrid(scene, store, schedule), SimpleNamespace(mis_merges=False))
+    m = 600
+    q = rng.uniform(-1.1, 1.1, size=(m, 3))
+    F = lambda a: mi.Float(a.astype(np.float32))       # noqa: E731
+    v = SimpleNamespace(si=SimpleNamespace(p=mi.Point3f(*[F(q[:, i]) for i in range(3)])),
+                        in_medium=dr.full(mi.Bool, in_medium, m))
+    got = np.array(merger.gather(dr.arange(mi.UInt32, m), v, SimpleNamespace(beta=mi.Spectrum(1.0)),
+                                 dr.full(mi.Bool, True, m)).x)
+    measure = (4.0 / 3.0 * np.pi * r ** 3 if in_medium else np.pi * r * r) * (n // SPP_PASS)
+    dist2 = np.sum((p[None, :, :] - q[:, None, :]) ** 2, axis=2)
+    mine = iteration[None, :] == (np.arange(m) % SPP_PASS)[:, None]
+    lo = np.sum(mine & (dist2 < r * r * (1 - 1e-4)), axis=1)
+    hi = np.sum(mine & (dist2 < r * r * (1 + 1e-4)), axis=1)
+    assert hi.sum() > 300, 'too few vertices near the queries for the test to mean anything'
+    count = got * measure
+    assert np.all(np.abs(count - np.round(count)) < 1e-3 * np.maximum(count, 1)), count[:8]
+    count = np.round(count)
+    bad = np.nonzero((count < lo) | (count > hi))[0]
+    assert bad.size == 0, f'queries {bad[:5]}: counted {count[bad[:5]]}, brute force {lo[bad[:5]]}..{hi[bad[:5]]}'
 
 
 def test_beams_where_media_are_gray_and_balls_where_chromatic():
