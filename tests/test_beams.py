@@ -1,7 +1,8 @@
 """Merging inside media by beams (bdpt_jit/beams.py): the grid walk finds each light vertex
 within r of a camera segment once (and merge.py's ball query each one within r of a point, its
-estimate normalised per unit volume in a medium, per unit area on a surface), the strategy's MIS factor reaches the kernels, and the
-choice between beams and balls follows the scene's media. The estimate's value is checked by
+estimate normalised per unit volume in a medium, per unit area on a surface), the strategy's
+MIS factor reaches the kernels, and the choice between beams and balls follows the scene's
+media. The estimate's value is checked by
 the renders of tests/test_media_render.py (vm and vcm against volpath, the white furnace),
 its weights by tests/test_mis_partition.py (beams: 1 / sigma_t of the vertex)."""
 
