@@ -49,7 +49,7 @@ _WIDE = 1e30           # an axis the direction does not move along: its next cro
 # an iteration's vertices in a cell on average, where that makes cells wider than 2 r: 0.5 (a
 # cell crossed costing what a vertex tested costs) put vcm's camera kernel 8-12% above 3 on
 # scenes/media/volumetric-caustic.xml at 128 x 128 and 256 x 256 (16 spp; at 64 x 64 the same
-# either way; the least of 4 renders a setting, 1.5 - 2.5 times 0.5's cell tried)
+# either way; the least of 4 renders a setting, cells 1.5 to 4 times 0.5's tried: 2.5 on slower)
 CELL_VERTICES = 3.0
 
 

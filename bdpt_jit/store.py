@@ -254,7 +254,7 @@ class LightStore:
         built over the stored vertices is built over these (merge.PhotonGrid: the grid over
         every slot took 12% of vcm's kernel time there, 97 ms of 832; light_cache.LightCache).
         ``in_medium`` True or False: those of the vertices inside media or on surfaces only
-        (their in_medium word read; a store without that field holds surface vertices only)."""
+        (their in_medium word read: the stores of scenes with media)."""
         n_slots = self.n * self.capacity
         if n_slots == 0:
             return dr.zeros(mi.UInt32, 0)
@@ -262,8 +262,6 @@ class LightStore:
         level = slot // self.n_opaque
         valid = level < dr.gather(mi.UInt32, self.count, slot - level * self.n_opaque)
         if in_medium is not None:
-            if 'in_medium' not in self.record.DRJIT_STRUCT:
-                return dr.zeros(mi.UInt32, 0) if in_medium else dr.compress(valid)
             word = slot * (self.record.packets() * 4) + self.record.word_of('in_medium')
             medium = dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, self.v, word, valid)) != 0
             valid &= medium if in_medium else ~medium
