@@ -20,7 +20,7 @@ from .context import Context
 from .film import FilmAccumulator
 from .light_cache import PILOT_PASS, PILOT_PATHS, LightCache, counts as cache_counts, pilot
 from .light_path import LightTracer
-from .beams import BeamGather, BeamGrid
+from .beams import BeamGather, BeamGrid, beam_cap
 from .merge import MergeSchedule, Merger, PhotonGrid
 from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, RenderHooks, caused_by_interrupt,
                      count_passes, light_capacity, pass_sampler, pixel_sampler, plan_passes)
@@ -381,14 +381,15 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if ctx.strategies.trace_merge:
             s = self.settings
             # a trial's light subpaths are 1/k of the render's: its radius sqrt(k) times the
-            # render's keeps pi r^2 N, the light vertices a merge finds (and its weights' eta)
+            # render's keeps pi r^2 N, the light vertices a merge finds (and its weights' eta),
+            # with 1/k of the render's cap on the beams' N
             radius_rel = s['radius'] * (math.sqrt(k) if trial else 1.0)
             schedule = MergeSchedule(ctx.scene, radius_rel, s['radius_alpha'], self.merge_iteration + 1,
-                                     spp_pass, n_light // spp_pass)
+                                     spp_pass, n_light // spp_pass, -(-beam_cap(ctx.strategies, s['beam_paths']) // (k if trial else 1)))
             self.merge_iteration += spp_pass
             # (max: a lattice pass without camera samples, whose terms are unused)
             eta, radius = merge_terms(schedule, max(n, 1), ctx.media is not None)
-        ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams))
+        ps = PassState(sampler, n, spp_pass, v0, acc, ctx.mis.for_pass(eta, radius=radius, **beam_terms(ctx, schedule)))
         ps.spectral, ps.u_wl, ps.schedule = spectral, u_wl, schedule
         ps.pixel_sampler = pixel_sampler(ctx, spp_pass, seed, index, max(n, 1))
         if trial:
@@ -423,7 +424,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         ps.light_sampler = pass_sampler(ctx, ps.spp_pass, seed, i, n_light)
         if ps.schedule is not None:     # merges: the light subpaths' own etas (and radii in media)
             eta, radius = merge_terms(ps.schedule, n_light, ctx.media is not None)
-            ps.mis_light = ctx.mis.for_pass(eta, radius=radius, beams=ctx.beams)
+            ps.mis_light = ctx.mis.for_pass(eta, radius=radius, **beam_terms(ctx, ps.schedule))
 
     def cache_pass_state(self, ctx, ps, seed, i, n_light, merging):
         """The light vertex cache's share of pass ``i`` (light_cache.py): n_L light subpaths with
@@ -438,9 +439,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if ctx.pixel_counts is not None:    # the counts per lane, at its pixel (CameraTracer, LightTracer)
             ps.vpp, ps.n_lt, counts = vpp, counts[1], None
         eta, radius = merging
-        ps.mis = ctx.mis.for_pass(eta, counts, radius, ctx.beams)
+        ps.mis = ctx.mis.for_pass(eta, counts, radius, **beam_terms(ctx, ps.schedule))
         eta_light, radius_light = merge_terms(ps.schedule, n_light, ctx.media is not None)
-        ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light, ctx.beams)
+        ps.mis_light = ctx.mis.for_pass(eta_light, counts, radius_light, **beam_terms(ctx, ps.schedule))
 
     def render_info(self, ctx, spp, n_pixels, samples_done, interrupted, levels_used):
         info = {
@@ -599,6 +600,12 @@ def camera_lattice(k, pixel_start, pixel_count, run=1, first=0):
         return x // (run * k) * run + min(max(x % (run * k) - first * run, 0), run)
     v0 = below(pixel_start)
     return v0, below(pixel_start + pixel_count) - v0
+
+
+def beam_terms(ctx, schedule):
+    """mis.MIS.for_pass's arguments on merges inside media: whether they are beams and the
+    share of an iteration's light subpaths that the beams gather from (merge.MergeSchedule)."""
+    return {'beams': ctx.beams, 'beam_share': schedule.beam_share if ctx.beams and schedule is not None else 1.0}
 
 
 def merge_terms(schedule, n, media):

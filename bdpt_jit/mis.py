@@ -157,6 +157,7 @@ class MIS:
         self.vc_factor = 0.0          # h(1/eta)
         self.vol_factor = None        # h(eta_vol / eta): a merge at a medium vertex (for_pass; media)
         self.beams = False            # merges at medium vertices are beams (set_volume; media)
+        self.beam_share = 1.0         # and their light subpaths' share of N (set_volume)
         self.mis_merges = strategies.merges and not strategies.ppm
         # merges at every non-delta vertex (Georgiev et al.), or only behind a delta vertex
         self.merge_everywhere = merge_everywhere
@@ -175,17 +176,17 @@ class MIS:
         path's speed)."""
         return self.s.connections or self.s.splats or self.mis_merges
 
-    def for_pass(self, eta=None, counts=None, radius=None, beams=False):
+    def for_pass(self, eta=None, counts=None, radius=None, beams=False, beam_share=1.0):
         """This MIS with the pass's eta = pi r^2 N (merges; None: no merges), the light vertex
         cache's sample counts (n_c, n_lt) (None: the classic estimator) and, in scenes with
-        media, the merging ``radius`` r and whether merges inside media are ``beams``
-        (``set_volume``): a copy, so that per-pass values travel with the pass and the Context's
-        MIS is never written."""
+        media, the merging ``radius`` r, whether merges inside media are ``beams`` and their
+        light subpaths' share of N (``set_volume``): a copy, so that per-pass values travel with
+        the pass and the Context's MIS is never written."""
         out = copy.copy(self)
         if eta is not None:
             out.set_radius(eta)
         if radius is not None:
-            out.set_volume(radius, beams)
+            out.set_volume(radius, beams, beam_share)
         if counts is not None:
             out.set_counts(*counts)
         return out
@@ -212,28 +213,30 @@ class MIS:
         has_vc = self.s.hits or self.s.direct or self.s.connections or self.s.splats
         self.vc_factor = self.h(1.0 / eta) if has_vc else 0.0               # [VCM (20)] n_VC = 1
 
-    def set_volume(self, radius, beams=False):
+    def set_volume(self, radius, beams=False, beam_share=1.0):
         """Merges inside media (media scenes only), relative to a surface merge (eta = pi r^2 N;
         per unit length: densities at medium vertices are per unit volume). The running
         quantities stay relative to a surface merge; a medium vertex's merge enters them with
         its factor (``merge_factor``).
         - ``beams`` (beams.py): the camera subpath's segment leaving z gathers y within r of
           it, wherever it passes y (probability T(z, y) for a short beam in a gray medium) with
-          eta = pi r^2 N, where the camera sampling y itself has the density sigma_t T: relative,
-          1 / sigma_t(y) [UPBP: Krivanek et al. 2014, point-beam 2D with short query beams];
+          eta = pi r^2 N_b, where the camera sampling y itself has the density sigma_t T: relative,
+          (N_b / N) / sigma_t(y) [UPBP: Krivanek et al. 2014, point-beam 2D with short query
+          beams], N_b / N = ``beam_share`` (the beams' light subpaths, merge.MergeSchedule);
         - else a ball of radius r around the camera vertex, eta_vol = 4/3 pi r^3 N: 4 r / 3
           [UPBP, point-point 3D]."""
         if self.mis_merges:
             self.beams = beams
+            self.beam_share = beam_share
             self.vol_factor = None if beams else self.h(radius * (4.0 / 3.0))    # [UPBP] eta_vol / eta
 
     def merge_factor(self, in_medium, offered=True, sigma=None):
         """A vertex's merge relative to a surface merge, for the ``merge_*`` arguments in scenes
         with media: 0 where no merge is offered (``offered``, a mask or True), the volume
-        factor at a medium vertex (beams: h(1 / ``sigma``), the vertex's
+        factor at a medium vertex (beams: h(N_b / N / ``sigma``), ``sigma`` the vertex's
         media.DensityFactor.sigma), 1 on a surface."""
         if self.beams:
-            vol = self.h(dr.select(sigma > 0, dr.rcp(sigma), 0.0))        # [UPBP] point-beam: 1 / sigma_t
+            vol = self.h(dr.select(sigma > 0, self.beam_share / sigma, 0.0))   # [UPBP] point-beam: (N_b / N) / sigma_t
         else:
             vol = self.vol_factor if self.vol_factor is not None else 0.0     # (no merges: unused)
         f = dr.select(in_medium, vol, 1.0)

@@ -83,6 +83,15 @@ PARAMS = (
           '`points` (a ball around each camera vertex in a medium: point-point 3D). Beams need media whose '
           'sigma_t is the same in every channel; elsewhere merges are points (docs/media.md).',
           choices=('beams', 'points')),
+    Param('beam_paths', int, None,
+          '`vcm` and `vm` with `media_merging=beams`: the light subpaths of an iteration (one sample per '
+          'pixel) whose medium vertices the beams gather, at most (0: all, one per pixel). A beam '
+          'gathers along its whole segment, so at a fixed radius its time grows with the light '
+          'subpaths while the rest of a sample\'s work does not; the MIS weights count the beams\' '
+          'own. Automatic: 4096 in `vcm` (its other strategies share the paths beams sample), all in '
+          '`vm` (where beams alone sample them); surface merges and balls use every light subpath '
+          '(docs/media.md).',
+          minimum=0),
     Param('light_paths', float, -1.0,
           'Light vertex cache (Davidovic et al. 2014): light subpaths a pass traces, as a ratio of its '
           'camera samples (e.g. 0.25, 1, 2; rounded to whole subpaths per pixel of an iteration); '

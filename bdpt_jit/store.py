@@ -247,20 +247,24 @@ class LightStore:
         """Where vertex ``level`` (0-based) of light subpath ``idx`` is stored."""
         return level * self.n_opaque + idx
 
-    def stored_slots(self, in_medium=None):
+    def stored_slots(self, in_medium=None, lanes=None):
         """The slots that hold a vertex, in increasing order (level-major: by level, then
         light subpath): Dr.Jit's compress of the valid slots. A light subpath fills a few of
         its levels (on the caustic at 256 x 256, max_depth 8, 1.1 vertices in 7), so what is
         built over the stored vertices is built over these (merge.PhotonGrid: the grid over
         every slot took 12% of vcm's kernel time there, 97 ms of 832; light_cache.LightCache).
         ``in_medium`` True or False: those of the vertices inside media or on surfaces only
-        (their in_medium word read: the stores of scenes with media)."""
+        (their in_medium word read: the stores of scenes with media). ``lanes``: those of the
+        light subpaths of index below it only (merge.MergeSchedule.beam_lanes), None: of all."""
         n_slots = self.n * self.capacity
         if n_slots == 0:
             return dr.zeros(mi.UInt32, 0)
         slot = dr.arange(mi.UInt32, n_slots)
         level = slot // self.n_opaque
-        valid = level < dr.gather(mi.UInt32, self.count, slot - level * self.n_opaque)
+        path = slot - level * self.n_opaque
+        valid = level < dr.gather(mi.UInt32, self.count, path)
+        if lanes is not None:
+            valid &= path < lanes
         if in_medium is not None:
             word = slot * (self.record.packets() * 4) + self.record.word_of('in_medium')
             medium = dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, self.v, word, valid)) != 0

@@ -52,10 +52,12 @@ def integrator(name, max_depth):
     params = {}
     for item in filter(None, extra.split('+')):
         key, _, value = item.partition('=')
-        try:
-            params[key] = float(value)
-        except ValueError:
-            params[key] = {'true': True, 'false': False}.get(value, value)
+        for kind in (int, float):
+            try:
+                params[key] = kind(value)
+                break
+            except ValueError:
+                params[key] = {'true': True, 'false': False}.get(value, value)
     if name in ('volpath', 'volpathmis') and not params:
         return {'type': name, 'max_depth': max_depth}
     if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto'):

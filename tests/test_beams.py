@@ -70,17 +70,25 @@ def counting(self, k, interval, seg, group_r2, active, tap=None):
     return dr.select(ok, mi.Spectrum(1.0), 0.0), ()
 
 
-@pytest.mark.parametrize('n,radius_rel', [(40000, 0.04), (3000, 0.03), (60, 0.2)])
-def test_each_light_vertex_within_r_of_a_segment_counts_once(monkeypatch, n, radius_rel):
+@pytest.mark.parametrize('n,radius_rel,cap', [(40000, 0.04, None), (3000, 0.03, None), (60, 0.2, None),
+                                              (40000, 0.04, 7001)])
+def test_each_light_vertex_within_r_of_a_segment_counts_once(monkeypatch, n, radius_rel, cap):
     """Random segments (inside and outside the vertices' box, ending or infinite) against random
     light vertices of two iterations: the walk's count for each segment lies between the brute
     force's count of vertices clearly within r of it (margins of 1e-4 r and 1e-4 along it, for
     float32) and of those loosely within: never a vertex twice (cells of 2 r, n = 40000; wider
-    cells where vertices are sparse, n = 3000; a radius near the cells, n = 60)."""
+    cells where vertices are sparse, n = 3000; a radius near the cells, n = 60). With a ``cap``
+    on the light subpaths of an iteration that beams gather from (merge.MergeSchedule,
+    parameter beam_paths): only the vertices of its first ``cap``, and the estimate over
+    N_b = cap (planted: the grid given every vertex, or N the iteration's light subpaths, fails)."""
     rng = np.random.default_rng(n)
     scene = mi.load_dict({'type': 'scene', 'box': {'type': 'cube'}})
     store, (p, path, valid) = random_store(rng, n)
-    schedule = MergeSchedule(scene, radius_rel, 1.0, 1, SPP_PASS, n // SPP_PASS)
+    schedule = MergeSchedule(scene, radius_rel, 1.0, 1, SPP_PASS, n // SPP_PASS, beam_cap=cap)
+    paths = min(n // SPP_PASS, cap or n)
+    if cap is not None:
+        assert schedule.beam_paths == cap
+        valid = valid & (path < cap * SPP_PASS)
     r = radius_rel * scene_radius(scene)
     grid = BeamGrid(scene, store, schedule)
     monkeypatch.setattr(BeamGather, 'merge_one', counting)
@@ -96,7 +104,7 @@ def test_each_light_vertex_within_r_of_a_segment_counts_once(monkeypatch, n, rad
     ray = mi.Ray3f(mi.Point3f(*[F(o[:, i]) for i in range(3)]), mi.Vector3f(*[F(d[:, i]) for i in range(3)]))
     seg = Segment(None, ray, None, F(t_end), SimpleNamespace(beta=mi.Spectrum(1.0)), True)
     got = np.array(gather.gather(dr.arange(mi.UInt32, m), seg, dr.full(mi.Bool, True, m)).x)
-    got = got * np.pi * r * r * (n // SPP_PASS)     # the estimate's 1 / (pi r^2 N) taken out
+    got = got * np.pi * r * r * paths               # the estimate's 1 / (pi r^2 N) taken out
 
     lo, hi = [], []
     for j in range(m):

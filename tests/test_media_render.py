@@ -282,6 +282,19 @@ def test_merging_agrees_with_volpath(name, technique, everywhere, radius, spp):
     check_against_volpath(name, integ, spp=spp)
 
 
+@pytest.mark.parametrize('name,technique,everywhere,spp', [('fog-area', 'vcm', True, 256),
+                                                            ('fog-dense', 'vm', False, 1024)])
+def test_beams_from_a_share_of_the_light_subpaths_agree_with_volpath(name, technique, everywhere, spp):
+    """Beams that gather from 85 of an iteration's 256 light subpaths (parameter beam_paths,
+    merge.MergeSchedule; an image of 16 x 16): their estimate over N_b = 85 and, in vcm's
+    weights, their density N_b / N of a surface merge's times 1 / sigma_t, while surface merges,
+    connections and light tracing use all 256 (planted: the beams' grid given every light
+    subpath, their estimate over N, or the weights' share left at 1: each fails)."""
+    integ = {**bdpt(technique, 6), 'radius': 0.05, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere,
+             'beam_paths': 85}
+    check_against_volpath(name, integ, spp=spp)
+
+
 def test_ball_merges_inside_media_agree_with_volpath():
     """vm in the dense fog with media_merging = points: the merges inside the medium are balls
     (merge.py's PhotonGrid holds the medium vertices: where media merge by beams it holds the

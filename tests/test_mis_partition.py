@@ -126,8 +126,9 @@ def merge_allowed(k, i, P, everywhere=False):
 
 def merge_volume(P, i):
     """A merge at x_i relative to a surface merge at a medium vertex: a ball, eta_vol / eta =
-    4 r / 3; a beam (``P['beams']``), P(s) / (sigma_t T) = 1 / sigma_t(x_i) (beams.py)."""
-    vol = 1.0 / P['sigma'][:, i] if P.get('beams') else 4.0 * P['radius'] / 3.0
+    4 r / 3; a beam (``P['beams']``), P(s) / (sigma_t T) = 1 / sigma_t(x_i) (beams.py), times
+    the beams' share of the light subpaths, N_b / N (``P['beam_share']``, merge.MergeSchedule)."""
+    vol = P.get('beam_share', 1.0) / P['sigma'][:, i] if P.get('beams') else 4.0 * P['radius'] / 3.0
     return np.where(P['med'][:, i], vol, 1.0)
 
 
@@ -259,7 +260,7 @@ def recursive(kind, technique, P, chains=False, counts=None, make_mis=None):
 
     mis.set_radius(F(P['eta']))
     if P.get('media', False):
-        mis.set_volume(F(P['radius']), beams=bool(P.get('beams')))
+        mis.set_volume(F(P['radius']), beams=bool(P.get('beams')), beam_share=F(P.get('beam_share', np.ones(M))))
     if counts is not None:
         mis.set_counts(F(counts[0]), F(counts[1]))
 
@@ -435,11 +436,14 @@ def test_weights_partition_of_unity_with_media(k, kind, technique, merging, emit
     distance-sampled (random forward and reverse distance densities, mis.MIS.distance and the
     strategies' pdf_l): the recursive weights equal the brute force's and sum to 1 (issue 23,
     test 3). vcm merges inside media too: in a ball (4/3 pi r^3 N) or along beams (1 / sigma_t
-    of the vertex relative to a surface merge; mis.MIS.set_volume)."""
+    of the vertex relative to a surface merge, times the share N_b / N of the light subpaths the
+    beams gather from, random here; mis.MIS.set_volume)."""
     rng = np.random.default_rng(7000 + 1000 * k + 31 * KINDS.index(emitter) + ['power', 'balance', 'uniform'].index(kind))
     P = random_paths(rng, k, delta_prob=0.3, emitter=emitter, media=True)
     P['camera'] = camera
     P['beams'] = merging == 'beams'
+    if P['beams']:
+        P['beam_share'] = rng.uniform(0.05, 1.0, size=M)
     if camera == 'delta' and technique == 'lt':
         return
     w_rec = recursive(kind, technique, P)

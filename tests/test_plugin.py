@@ -29,6 +29,7 @@ def test_registered_for_xml_and_dict():
                               'hide_emitters': True, 'samples_per_pass': 1000,
                               'strategy_images': False, 'statistics': False, 'aovs': '',
                               'radius': 0.005, 'radius_alpha': 0.75, 'merge_everywhere': False, 'media_merging': 'beams',
+                              'beam_paths': None,
                               'light_paths': -1.0, 'connections': -1}
     scene = mi.load_file(scene_path('cornell-box.xml'), res=8)
     assert isinstance(scene.integrator(), bdpt_jit.BDPTIntegrator)
