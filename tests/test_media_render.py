@@ -289,7 +289,8 @@ def test_beams_from_a_share_of_the_light_subpaths_agree_with_volpath(name, techn
     merge.MergeSchedule; an image of 16 x 16): their estimate over N_b = 85 and, in vcm's
     weights, their density N_b / N of a surface merge's times 1 / sigma_t, while surface merges,
     connections and light tracing use all 256 (planted: the beams' grid given every light
-    subpath, their estimate over N, or the weights' share left at 1: each fails)."""
+    subpath fails both, their estimate over N one; the share in the weights changes only the
+    variance, test_mis_partition.py checks it against the brute force)."""
     integ = {**bdpt(technique, 6), 'radius': 0.05, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere,
              'beam_paths': 85}
     check_against_volpath(name, integ, spp=spp)
