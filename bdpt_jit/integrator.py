@@ -67,6 +67,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         self.hooks = RenderHooks()      # progress and stopping between passes (passes.RenderHooks)
         self.merge_iteration = 0        # vcm, vm: iterations (samples per pixel) so far, over every render (merge.py)
         self.last_merge_radius = None   # the last pass's merging radius (world units)
+        self.last_beam_paths = None     # and the light subpaths an iteration its beams gathered from
         self.last_render_info = {}
         self.cache_run = None           # the light vertex cache's (V / n_L of the pilot, c) for this render
         self.moment_counts = None       # technique auto's pilot: the candidates' (n_c, n_lt) (moments.py)
@@ -334,6 +335,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             if ctx.beams:
                 ps.beams = BeamGather(ctx, BeamGrid(ctx.scene, ps.store, ps.schedule), ps.mis)
             self.last_merge_radius = ps.schedule.r_last
+            self.last_beam_paths = ps.schedule.beam_paths if ctx.beams else None
         if ctx.strategies.camera_pass and ps.n > 0:    # (auto's lattice pilot: a pass may hold no kept pixel)
             CameraTracer(ctx, ps).trace()
         elif (acc.has_alpha or acc.n_aov) and ps.n > 0:
@@ -384,8 +386,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # render's keeps pi r^2 N, the light vertices a merge finds (and its weights' eta),
             # with 1/k of the render's cap on the beams' N
             radius_rel = s['radius'] * (math.sqrt(k) if trial else 1.0)
+            beams = -(-beam_cap(ctx.strategies, s['beam_paths']) // (k if trial else 1))     # (0: all)
             schedule = MergeSchedule(ctx.scene, radius_rel, s['radius_alpha'], self.merge_iteration + 1,
-                                     spp_pass, n_light // spp_pass, -(-beam_cap(ctx.strategies, s['beam_paths']) // (k if trial else 1)))
+                                     spp_pass, n_light // spp_pass, beams)
             self.merge_iteration += spp_pass
             # (max: a lattice pass without camera samples, whose terms are unused)
             eta, radius = merge_terms(schedule, max(n, 1), ctx.media is not None)
@@ -472,6 +475,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         if ctx.strategies.trace_merge:
             info['merge_iteration'] = self.merge_iteration
             info['merge_radius'] = self.last_merge_radius
+            if ctx.beams:
+                info['media']['beam_paths'] = self.last_beam_paths
         return info
 
     # ------------------------------------------------------------------ derivatives
@@ -605,7 +610,8 @@ def camera_lattice(k, pixel_start, pixel_count, run=1, first=0):
 def beam_terms(ctx, schedule):
     """mis.MIS.for_pass's arguments on merges inside media: whether they are beams and the
     share of an iteration's light subpaths that the beams gather from (merge.MergeSchedule)."""
-    return {'beams': ctx.beams, 'beam_share': schedule.beam_share if ctx.beams and schedule is not None else 1.0}
+    share = schedule.beam_share if ctx.beams and schedule is not None else 1.0
+    return {'beams': ctx.beams, 'beam_share': share}
 
 
 def merge_terms(schedule, n, media):

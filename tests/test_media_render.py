@@ -294,6 +294,11 @@ def test_beams_from_a_share_of_the_light_subpaths_agree_with_volpath(name, techn
     integ = {**bdpt(technique, 6), 'radius': 0.05, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere,
              'beam_paths': 85}
     check_against_volpath(name, integ, spp=spp)
+    for cap, used in ((85, 85), (None, 256), (0, 256)):      # (automatic: 4096 in vcm, all in vm)
+        props = {k: v for k, v in integ.items() if k != 'beam_paths'}
+        one = mi.load_dict(props if cap is None else {**props, 'beam_paths': cap})
+        mi.render(mi.load_dict(SCENES[name]()), integrator=one, spp=1)
+        assert one.last_render_info['media']['beam_paths'] == used, (cap, one.last_render_info['media'])
 
 
 def test_ball_merges_inside_media_agree_with_volpath():
