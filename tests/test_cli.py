@@ -474,3 +474,15 @@ def test_aovs_are_written_as_named_channels(tmp_path):
     ch = {name: c.pixels for name, c in f.channels().items()}
     assert {'R', 'G', 'B', 'dd.T', 'nn.X', 'nn.Y', 'nn.Z'} <= set(ch)
     assert ch['dd.T'].max() > 1.0 and abs(ch['nn.Z']).max() <= 1.0 + 1e-5
+
+
+def test_the_summary_says_how_many_light_subpaths_the_beams_gathered_from():
+    """With statistics in a scene with media, the summary's media line counts the collisions and,
+    where media merge by beams, the light subpaths an iteration the beams gathered from
+    (last_render_info['media']['beam_paths'], parameter beam_paths); no such clause without beams."""
+    from bdpt_jit.cli.summary import _bdpt_statistics
+    media = {'heterogeneous': False, 'chromatic': False, 'real_collisions': 12, 'null_collisions': 0,
+             'medium_inconsistencies': 0}
+    beams = _bdpt_statistics({'strategies': [], 'media': {**media, 'merging': 'beams', 'beam_paths': 4096}})['media']
+    assert beams.startswith('12 real collisions') and beams.endswith('beams gathered from 4,096 light subpaths an iteration')
+    assert 'beams' not in _bdpt_statistics({'strategies': [], 'media': {**media, 'merging': None}})['media']

@@ -98,6 +98,8 @@ def _bdpt_statistics(info):
     if 'real_collisions' in media:         # statistics with media (media.py)
         stats['media'] = (f"{media['real_collisions']:,} real collisions, {media['null_collisions']:,} null collisions, "
                           f"{media['medium_inconsistencies']:,} connections refused (their ends disagree about the medium)")
+        if media.get('beam_paths') is not None:     # merges inside media by beams (beams.py)
+            stats['media'] += f"; beams gathered from {media['beam_paths']:,} light subpaths an iteration"
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
         decided = a.get('decisions', [])
