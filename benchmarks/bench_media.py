@@ -36,7 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_light_cache import load, long_render, relmse  # noqa: E402  (the scene at res x res; a long render)
+from bench_light_cache import load, long_render, parameter_value, relmse  # noqa: E402  (the scene at res x res; a long render)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = {'caustic': os.path.join(REPO, 'scenes', 'media', 'volumetric-caustic.xml'),
@@ -52,12 +52,7 @@ def integrator(name, max_depth):
     params = {}
     for item in filter(None, extra.split('+')):
         key, _, value = item.partition('=')
-        for kind in (int, float):
-            try:
-                params[key] = kind(value)
-                break
-            except ValueError:
-                params[key] = {'true': True, 'false': False}.get(value, value)
+        params[key] = parameter_value(value)
     if name in ('volpath', 'volpathmis') and not params:
         return {'type': name, 'max_depth': max_depth}
     if name in ('bdpt', 'pt', 'lt', 'vcm', 'vm', 'auto'):

@@ -47,6 +47,16 @@ def random_store(rng, n, levels=2):
     return store, (np.concatenate(ps), np.concatenate(paths), np.concatenate(valid))
 
 
+def test_the_beams_cap_is_the_parameter_or_automatic():
+    """beams.beam_cap: the parameter beam_paths where set (0: all), else BEAM_PATHS in vcm and
+    all (0) in vm, whose beams alone sample what they sample."""
+    from bdpt_jit.beams import BEAM_PATHS, beam_cap
+    from bdpt_jit.strategies import StrategySet
+    assert beam_cap(StrategySet('vcm'), None) == BEAM_PATHS
+    assert beam_cap(StrategySet('vm'), None) == 0
+    assert beam_cap(StrategySet('vm'), 85) == 85 and beam_cap(StrategySet('vcm'), 0) == 0
+
+
 def test_stored_slots_split_into_medium_and_surface_vertices():
     """LightStore.stored_slots(in_medium=...): the beam grid's vertices (inside media) and the
     photon grid's where media merge by beams (on surfaces) are the stored vertices of each kind,

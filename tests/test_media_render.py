@@ -284,21 +284,27 @@ def test_merging_agrees_with_volpath(name, technique, everywhere, radius, spp):
 
 @pytest.mark.parametrize('name,technique,everywhere,spp', [('fog-area', 'vcm', True, 256),
                                                             ('fog-dense', 'vm', False, 1024)])
-def test_beams_from_a_share_of_the_light_subpaths_agree_with_volpath(name, technique, everywhere, spp):
+def test_beams_from_a_share_of_the_light_subpaths_agree_with_volpath(monkeypatch, name, technique, everywhere, spp):
     """Beams that gather from 85 of an iteration's 256 light subpaths (parameter beam_paths,
     merge.MergeSchedule; an image of 16 x 16): their estimate over N_b = 85 and, in vcm's
     weights, their density N_b / N of a surface merge's times 1 / sigma_t, while surface merges,
     connections and light tracing use all 256 (planted: the beams' grid given every light
     subpath fails both, their estimate over N one; the share in the weights changes only the
-    variance, test_mis_partition.py checks it against the brute force)."""
+    variance: test_mis_partition.py checks the weights with it against the brute force, and
+    the share each pass's weights are given is checked here, N_b / N)."""
+    from bdpt_jit.mis import MIS
     integ = {**bdpt(technique, 6), 'radius': 0.05, 'samples_per_pass': 1 << 16, 'merge_everywhere': everywhere,
              'beam_paths': 85}
     check_against_volpath(name, integ, spp=spp)
+    shares, for_pass = [], MIS.for_pass
+    monkeypatch.setattr(MIS, 'for_pass', lambda self, *a, **kw: shares.append(kw.get('beam_share')) or for_pass(self, *a, **kw))
     for cap, used in ((85, 85), (None, 256), (0, 256)):      # (automatic: 4096 in vcm, all in vm)
         props = {k: v for k, v in integ.items() if k != 'beam_paths'}
         one = mi.load_dict(props if cap is None else {**props, 'beam_paths': cap})
+        shares.clear()
         mi.render(mi.load_dict(SCENES[name]()), integrator=one, spp=1)
         assert one.last_render_info['media']['beam_paths'] == used, (cap, one.last_render_info['media'])
+        assert shares and all(abs(float(dr.ravel(x)[0]) - used / 256) < 1e-6 for x in shares), (cap, shares)
 
 
 def test_ball_merges_inside_media_agree_with_volpath():
