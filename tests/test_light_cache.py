@@ -362,6 +362,15 @@ def names_of(info):
     return [c['name'] for c in info['candidates'] if 'per pixel' not in c['name']]
 
 
+def without_caches(monkeypatch):
+    """technique auto's candidates less the light vertex caches (as in spectral variants): for
+    the tests of its merge sets, whose subject is not the caches (each cache compiles kernels
+    of its own: ~20 s of an empty kernel cache in a scene with media)."""
+    from bdpt_jit import auto
+    real = auto.candidates
+    monkeypatch.setattr(auto, 'candidates', lambda *a, **k: [tr for tr in real(*a, **k) if tr.cache is None])
+
+
 def test_auto_s_behind_delta_candidate_merges_behind_delta_whatever_the_caller_sets(monkeypatch):
     """vcm's own merge set (auto.BEHIND_DELTA) is rendered with merges behind delta vertices
     only, as the pilot predicts it, also where the caller's auto integrator was given
@@ -374,6 +383,7 @@ def test_auto_s_behind_delta_candidate_merges_behind_delta_whatever_the_caller_s
         captured['make'] = make         # the render's own integrator maker (integrator.render_auto)
         return real(make, trial, *args, **kwargs)
     monkeypatch.setattr(auto, 'time_trial', spy)
+    without_caches(monkeypatch)
     scene = load_scene('caustic.xml', 16, 4)
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto', 'merge_everywhere': True})
     mi.render(scene, integrator=integ, spp=1, seed=5)
@@ -394,6 +404,7 @@ def test_auto_in_media_pilots_vcm_s_own_merge_set_apart(monkeypatch):
     scene = mi.load_dict(media_scenes.volumetric_caustic(res=8))
     integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
     pilots = spy_pilots(monkeypatch)
+    without_caches(monkeypatch)
     img = np.array(mi.render(scene, integrator=integ, spp=2, seed=5))
     names = names_of(integ.last_render_info['auto'])
     assert auto.BEHIND_DELTA in names and np.all(np.isfinite(img))
