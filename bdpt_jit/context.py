@@ -19,7 +19,8 @@ from .params import ParameterError, aov_channel_names, parse_aovs
 from .passes import UNBOUNDED
 from .rays import RayOffsets
 from .sampling import Sampling
-from .scene_check import (UnsupportedSceneError, VertexNeeds, describe_medium, has_instances, media_info,
+from .scene_check import (UnsupportedSceneError, VertexNeeds, check_infinite_emitters, describe_medium,
+                          has_instances, media_info,
                           scene_has_delta_bsdf, scene_media, scene_refracts, scene_perturbs_normals,
                           scene_non_reciprocal)
 from .stats import MediumStats, RayStats
@@ -204,7 +205,7 @@ class Context:
         if not info.any and not (info.any_null and not self.ad):
             return None, None, None
         from .media import MediumTracer
-        from .media_path import EmitterMedia
+        from .media_path import EmitterMedia, outside_medium
         # a surface with a Null lobe and no medium: the tracer passes it on walks and edges with
         # its Null lobe's probability and transmission (media.MediumTracer), so that a shadow ray
         # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
@@ -224,7 +225,9 @@ class Context:
             # redefinition of function" in a virtual call) after some process histories
             check_parameters(mi.traverse(scene), scene)
         stats = MediumStats() if settings['statistics'] else None
-        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets), stats
+        outside = outside_medium(scene, self.offsets, sensor)
+        check_infinite_emitters(scene, outside)
+        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets, outside), stats
 
     def cache_settings(self, settings):
         """light_cache.CacheSettings of the parameters light_paths and connections, or None."""

@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from .emitter_tables import sphere_placements, sphere_positions
-from .media import DensityFactor, MediumVertex, medium_after, medium_at_sensor, surface_stop
+from .media import DensityFactor, MediumVertex, medium_after, medium_array, medium_at_sensor, surface_stop
 from .rays import spawn
 from .vertex import Vertex
 
@@ -226,35 +226,41 @@ class EmitterMedia:
     probe points (PROBES x PROBES over its surface) find different media straddles a boundary (a
     lamp half inside a glass of fog, as in Mitsuba's test scene ``homo_emitter_inside_medium``):
     its medium is searched for per point and direction in the kernels (``per_point``; None where
-    no emitter needs it, and no kernel traces the search)."""
+    no emitter needs it, and no kernel traces the search). Outside every shape lies the medium
+    ``outside`` (``outside_medium``: vacuum unless the sensor's medium or the shapes' exteriors
+    say otherwise): infinite emitters lie in it, and so does an emitter whose probe rays leave
+    the scene without meeting a medium boundary (a point light in a fog that the sensor carries
+    and no shape bounds: Mitsuba's volpath lights the fog with it, as bdpt now does)."""
     PROBES = 4
 
-    def __init__(self, scene, offsets):
+    def __init__(self, scene, offsets, outside=None):
         self.scene, self.offsets = scene, offsets
+        self.outside = outside                  # the medium outside every shape (None: vacuum)
         ids, varies = {}, {}
         for em in scene.emitters():
             key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
-            found = self.emitter_media(scene, offsets, em)
+            found = self.emitter_media(em)
             ids[key] = found[0] if len(found) == 1 else 0
             varies[key] = int(len(found) > 1)
         size = max(list(ids) + [0]) + 1
         self.table = mi.UInt32([ids.get(k, 0) for k in range(size)])
         self.per_point = mi.UInt32([varies.get(k, 0) for k in range(size)]) if any(varies.values()) else None
 
-    @classmethod
-    def emitter_media(cls, scene, offsets, em):
+    def emitter_media(self, em):
         """The medium ids (0: vacuum) the emitter ``em`` lies in: one where it has a medium of
-        its own, is infinite (0) or a single point; else those found from its probe points."""
+        its own, is infinite (the outside's) or a single point; else those found from its probe
+        points."""
         if em.get_medium() is not None:
             return [_medium_id(em.get_medium())]
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
-            return [0]
+            return [_medium_id(self.outside)]
+        scene, offsets, cls = self.scene, self.offsets, type(self)
         g = (np.arange(cls.PROBES) + 0.5) / cls.PROBES
         u, v = np.meshgrid(g, g)
         ps, _ = em.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel()))
         ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
         n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
-        found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True))
+        found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True), self.outside)
         return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))
 
     def medium(self, emitter, p, n, d, active=True):
@@ -269,7 +275,7 @@ class EmitterMedia:
         if self.per_point is not None:      # straddling emitters: the search from this point
             search = active & ~on_boundary & (dr.gather(mi.UInt32, self.per_point,
                                                         dr.reinterpret_array(mi.UInt32, emitter), active) != 0)
-            own = dr.select(search, enclosing_medium(self.scene, self.offsets, p, d, search), own)
+            own = dr.select(search, enclosing_medium(self.scene, self.offsets, p, d, search, self.outside), own)
         return dr.select(on_boundary, si.target_medium(d), own)
 
 
@@ -278,23 +284,65 @@ def _medium_id(medium):
 
 
 @dr.syntax
-def enclosing_medium(scene, offsets, p, d, active, max_hits=64):
+def enclosing_medium(scene, offsets, p, d, active, outside=None, max_hits=64):
     """The medium around the points ``p`` (per lane; null: vacuum): along the ray from each in
     direction ``d``, the first shape that is a medium transition tells by the side the ray meets
     it on (shapes that are not, opaque or not, lie inside one medium and are passed). A ray that
-    leaves the scene, or meets ``max_hits`` other shapes first, finds vacuum."""
+    leaves the scene finds the medium ``outside`` every shape (``outside_medium``; None:
+    vacuum); one that meets ``max_hits`` other shapes first, vacuum."""
     ray = mi.Ray3f(p, dr.normalize(d))
-    found = dr.zeros(mi.MediumPtr, dr.width(p))
-    going, hits = mi.Bool(active), dr.zeros(mi.UInt32, dr.width(p))
+    n = dr.width(p)
+    found = dr.zeros(mi.MediumPtr, n)
+    going, hits = mi.Bool(active), dr.zeros(mi.UInt32, n)
+    left = dr.zeros(mi.Bool, n)
     while going:
         si = offsets.intersect(scene, ray, going)
+        left |= going & ~si.is_valid()
         going &= si.is_valid()
         at = going & si.is_medium_transition()
         found = dr.select(at, si.target_medium(-ray.d), found)      # the side the ray came from
         hits += 1
         going &= ~at & (hits < max_hits)
         ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
+    if outside is not None:
+        found = dr.select(left, medium_array(outside, n), found)
     return found
+
+
+OUTSIDE_RAYS = 64       # rays from the sensor that find the medium outside every shape (``outside_medium``)
+
+
+def outside_medium(scene, offsets, sensor, max_hits=256):
+    """The medium outside every shape (None: vacuum), as the scene's declarations say: rays
+    from the sensor's position start in its medium, take at each medium transition they pass
+    the side they go into (shapes of any BSDF are passed: this follows the declarations, not
+    the light) and leave the scene in the outside's medium; the medium most of them leave in.
+    Vacuum where no ray leaves (max_hits shapes on each way). A sensor in a fog that no shape
+    bounds (Mitsuba's simplest fog: the sensor's ``medium``) finds that fog outside."""
+    k = np.arange(OUTSIDE_RAYS) + 0.5                   # a Fibonacci sphere of directions
+    z = 1.0 - 2.0 * k / OUTSIDE_RAYS
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
+    rho = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    d = mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in (rho * np.cos(phi), rho * np.sin(phi), z)))
+    origin = mi.Point3f(sensor.world_transform().translation())
+    ray = mi.Ray3f(dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, d)
+    medium = medium_at_sensor(sensor, OUTSIDE_RAYS)
+    going, left = dr.full(mi.Bool, True, OUTSIDE_RAYS), dr.zeros(mi.Bool, OUTSIDE_RAYS)
+    for _ in range(max_hits):           # (a Python loop: once per render, on 64 rays)
+        si = offsets.intersect(scene, ray, going)
+        left |= going & ~si.is_valid()
+        going &= si.is_valid()
+        medium = dr.select(going & si.is_medium_transition(), si.target_medium(ray.d), medium)
+        ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
+        if not dr.any(going):
+            break
+    ids = np.array(dr.reinterpret_array(mi.UInt32, medium))[np.array(left)]
+    if ids.size == 0:
+        return None
+    values, counts = np.unique(ids, return_counts=True)
+    best = int(values[np.argmax(counts)])
+    from .scene_check import scene_media
+    return next((m for m in scene_media(scene, sensor) if _medium_id(m) == best), None)
 
 
 def stored_vertex(v, medium, in_medium):

@@ -319,6 +319,26 @@ def _check_instanced_media(scene, sensor):
                 "medium's shape outside the shape group", alternative='volpath')
 
 
+def check_infinite_emitters(scene, outside):
+    """Refuse an infinite emitter (environment, constant, sun and sky, directional) beyond a
+    medium that fills space: where the medium outside every shape (media_path.outside_medium)
+    is homogeneous it has no end, and no light from infinity crosses it (Mitsuba's volpath
+    attenuates such light over twice the scene's radius from each point, a convention that a
+    light subpath, leaving from the emitter, cannot follow)."""
+    if outside is None or not outside.is_homogeneous():
+        return
+    for em in scene.emitters():
+        if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
+            ident = str(em.id()) if hasattr(em, 'id') and str(em.id()) else ''
+            name = f"'{ident}' ({_plugin_name(em)})" if ident else f"'{_plugin_name(em)}'"
+            raise UnsupportedSceneError(
+                f"bdpt: the emitter {name} lies at infinity, beyond the homogeneous medium "
+                f"{describe_medium(outside)} that fills the space outside every shape (the sensor's medium, "
+                "or the shapes' exterior, with no shape bounding it): no light from infinity crosses an "
+                "unbounded medium. Bound the medium with a shape (e.g. a cube with a null BSDF and the "
+                "medium as its interior) or remove the emitter", alternative='volpath')
+
+
 def has_instances(scene: mi.Scene) -> bool:
     """True if the scene instances shape groups: their shapes and BSDFs are not in
     ``scene.shapes()``, so every analysis below answers conservatively (delta handling, exact

@@ -487,6 +487,30 @@ def straddling_light(res=16):
                'bsdf': diffuse(0.0), 'emitter': {'type': 'area', 'radiance': rgb(4.0)}})
 
 
+def open_fog(light='sphere', sky=0.0, res=16):
+    """(f4) A fog that only the sensor carries (Mitsuba's simplest fog: the sensor's ``medium``,
+    no shape bounding it, so that it fills all space, as volpath reads the scene): homogeneous,
+    sigma_t 0.4, albedo 0.8; a diffuse floor (y = -0.5) and a diffuse sphere (radius 0.3 at the
+    origin) that declare no medium (they lie in the fog); ``light``: 'sphere' (radius 0.1 at
+    (0.4, 0.9, 0.2), radiance 40) or 'point' (intensity 2 there), neither declaring a medium
+    (media_path.EmitterMedia finds the fog outside every shape: media_path.outside_medium);
+    ``sky`` > 0 adds a constant sky beyond the unbounded fog, which bdpt refuses
+    (scene_check.check_infinite_emitters). The camera at (0, 0.3, 2) in the fog."""
+    objs = dict(
+        floor={'type': 'rectangle', 'to_world': T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(3.0),
+               'bsdf': diffuse(0.6)},
+        ball={'type': 'sphere', 'center': [0, 0, 0], 'radius': 0.3, 'bsdf': diffuse(0.5)})
+    if light == 'sphere':
+        objs['light'] = {'type': 'sphere', 'center': [0.4, 0.9, 0.2], 'radius': 0.1,
+                         'emitter': {'type': 'area', 'radiance': rgb(40.0)}}
+    else:
+        objs['light'] = {'type': 'point', 'position': [0.4, 0.9, 0.2], 'intensity': rgb(2.0)}
+    if sky > 0:
+        objs['sky'] = constant_sky(sky)
+    return scene(sensor=_camera(res, [0, 0.3, 2.0], [0, -0.1, 0], 50.0, medium='fog'),
+                 fog=homogeneous(0.4, 0.8), **objs)
+
+
 def albedo_grid(res=16):
     """(f''') A homogeneous medium whose albedo is a volume (Mitsuba allows a ``gridvolume``
     there, as its docs scene medium_homogeneous_sss_textured does): sigma_t 3 in a null cube
@@ -514,7 +538,7 @@ BUILDERS = {
     'absorbing_sphere': absorbing_sphere, 'absorbing_cube': absorbing_cube, 'furnace': furnace,
     'single_scatter': single_scatter, 'fog_room': fog_room, 'grid_box': grid_box,
     'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic, 'thin_glass': thin_glass,
-    'straddling_light': straddling_light, 'albedo_grid': albedo_grid,
+    'straddling_light': straddling_light, 'albedo_grid': albedo_grid, 'open_fog': open_fog,
 }
 
 
