@@ -250,6 +250,21 @@ def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
         assert got == int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(sc.sensors()[0].get_medium()))[0]), light
 
 
+@pytest.mark.parametrize('technique', ['bdpt', 'pt'])
+def test_a_sky_beyond_a_grid_that_no_shape_bounds(technique):
+    """A heterogeneous medium that only the sensor carries ends at its grid: the sky beyond it
+    lights the scene as it does when a null cube declares the same medium (volpath's reference
+    of that bounded scene; media_scenes.open_smoke). The sky lay in vacuum before the outside
+    medium was known (media_path.outside_medium), and every connection to it from the medium was
+    refused: pt 0.073 and bdpt 0.059 where the bounded scene renders 0.23."""
+    sc = ms.load('open_smoke')
+    mine = render_batches(sc, bdpt(technique, 'power', 5), 256 if technique == 'pt' else 64, K)
+    for w in ('volpath', 'volpathmis'):
+        ref = ms.media_reference('open_smoke', 5, w, 256, K, params={'bound': True})
+        ok, msg = agreement(mine, ref, alpha=0.01, floor=ms.FLOAT_FLOOR)
+        assert ok, f'open smoke {technique} vs {w} of the bounded scene: {msg}'
+
+
 def test_a_sky_beyond_an_unbounded_fog_is_refused_naming_both():
     """An infinite emitter beyond a homogeneous medium that fills all space is refused, naming
     the emitter and the medium (no light from infinity crosses it; volpath's convention, an
