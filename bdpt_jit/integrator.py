@@ -26,7 +26,7 @@ from .passes import (BYTES_PER_LIGHT_VERTEX, BYTES_PER_SAMPLE, PassState, Render
                      count_passes, light_capacity, pass_sampler, pixel_sampler, plan_passes)
 from .gradients import check_parameters, geometry_keys
 from .jit_guard import held
-from .scene_check import check_scene, check_variant
+from .scene_check import check_scene, check_variant, describe_medium
 from .store import LightStore
 
 LATTICE_PASS = 1 << 25          # pass_seed index of a lattice pilot's camera samples (lattice_pass_state)
@@ -467,6 +467,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         elif ctx.media is not None:
             info['media'] = {'heterogeneous': ctx.media.info.heterogeneous, 'chromatic': ctx.media.info.chromatic,
                              'merging': None if not ctx.strategies.trace_merge else ('beams' if ctx.beams else 'points'),
+                             'outside': (describe_medium(ctx.emitter_media.outside)
+                                         if ctx.emitter_media.outside is not None else None),
                              **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}
         if ctx.light_cache is not None:
             vpp, c = self.cache_run

@@ -238,7 +238,8 @@ def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
     lie in that fog (media_path.EmitterMedia: their probe rays leave the scene, where the
     outside's medium is): a light subpath started in vacuum there would disagree with every
     camera vertex, and every connection to it would be refused (bdpt rendered 0.012 where
-    volpath renders 0.13, pt 0)."""
+    volpath renders 0.13, pt 0). last_render_info['media']['outside'] names the fog (vacuum:
+    None, the grid box)."""
     import drjit as dr
     from bdpt_jit.media_path import EmitterMedia
     from bdpt_jit.rays import RayOffsets
@@ -248,6 +249,11 @@ def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
         em = sc.emitters()[0]
         got = int(np.array(table)[int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])])
         assert got == int(dr.reinterpret_array(mi.UInt32, mi.MediumPtr(sc.sensors()[0].get_medium()))[0]), light
+    integ = mi.load_dict(bdpt('bdpt', 'power', 5))          # (the kernels of the agreement case)
+    mi.render(ms.load('open_fog'), integrator=integ, spp=1)
+    assert integ.last_render_info['media']['outside'] == "'fog' (homogeneous)"
+    mi.render(ms.load('grid_box'), integrator=integ, spp=1)
+    assert integ.last_render_info['media']['outside'] is None
 
 
 @pytest.mark.parametrize('technique', ['bdpt', 'pt'])
