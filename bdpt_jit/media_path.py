@@ -319,11 +319,13 @@ def outside_medium(scene, offsets, sensor, max_hits=256):
     the light) and leave the scene in the outside's medium; the medium most of them leave in.
     Vacuum where no ray leaves (max_hits shapes on each way). A sensor in a fog that no shape
     bounds (Mitsuba's simplest fog: the sensor's ``medium``) finds that fog outside."""
-    k = np.arange(OUTSIDE_RAYS) + 0.5                   # a Fibonacci sphere of directions
+    # a Fibonacci sphere of directions, computed in the kernel (arrays made from numpy have
+    # their memory's alignment in the kernel's code: its hash varied from render to render)
+    k = dr.arange(mi.Float, OUTSIDE_RAYS) + 0.5
     z = 1.0 - 2.0 * k / OUTSIDE_RAYS
-    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
-    rho = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    d = mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in (rho * np.cos(phi), rho * np.sin(phi), z)))
+    phi = dr.pi * (1.0 + 5.0 ** 0.5) * k
+    rho = dr.sqrt(dr.maximum(0.0, 1.0 - z * z))
+    d = mi.Vector3f(rho * dr.cos(phi), rho * dr.sin(phi), z)
     origin = mi.Point3f(sensor.world_transform().translation())
     ray = mi.Ray3f(dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, d)
     medium = medium_at_sensor(sensor, OUTSIDE_RAYS)
