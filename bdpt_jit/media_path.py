@@ -254,8 +254,8 @@ class EmitterMedia:
             return [_medium_id(em.get_medium())]
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
             return [_medium_id(self.outside)]
-        scene, offsets, cls = self.scene, self.offsets, type(self)
-        g = (np.arange(cls.PROBES) + 0.5) / cls.PROBES
+        scene, offsets = self.scene, self.offsets
+        g = (np.arange(self.PROBES) + 0.5) / self.PROBES
         u, v = np.meshgrid(g, g)
         ps, _ = em.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel()))
         ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
@@ -334,7 +334,7 @@ def outside_medium(scene, offsets, sensor, max_hits=256):
         si = offsets.intersect(scene, ray, going)
         left |= going & ~si.is_valid()
         going &= si.is_valid()
-        medium = dr.select(going & si.is_medium_transition(), si.target_medium(ray.d), medium)
+        medium = dr.select(going, medium_after(si, ray.d, medium), medium)
         ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
         if not dr.any(going):
             break

@@ -134,7 +134,8 @@ def _plugin_name(obj) -> str:
 
 
 def describe_medium(medium) -> str:
-    """A medium as a message names it: its id (if any) and its plugin."""
+    """A medium (or any other plugin object: an emitter) as a message names it: its id (if any)
+    and its plugin."""
     plugin = _plugin_name(medium)
     ident = str(medium.id()) if hasattr(medium, 'id') else ''
     return f"'{ident}' ({plugin})" if ident else f"'{plugin}'"
@@ -329,10 +330,8 @@ def check_infinite_emitters(scene, outside):
         return
     for em in scene.emitters():
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
-            ident = str(em.id()) if hasattr(em, 'id') and str(em.id()) else ''
-            name = f"'{ident}' ({_plugin_name(em)})" if ident else f"'{_plugin_name(em)}'"
             raise UnsupportedSceneError(
-                f"bdpt: the emitter {name} lies at infinity, beyond the homogeneous medium "
+                f"bdpt: the emitter {describe_medium(em)} lies at infinity, beyond the homogeneous medium "
                 f"{describe_medium(outside)} that fills the space outside every shape (the sensor's medium, "
                 "or the shapes' exterior, with no shape bounding it): no light from infinity crosses an "
                 "unbounded medium. Bound the medium with a shape (e.g. a cube with a null BSDF and the "
