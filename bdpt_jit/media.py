@@ -359,15 +359,15 @@ class MediumTracer:
         return dr.select(het, tr_het, tr_hom), tr_hom, dr.select(het, tmaj, 1.0)
 
     @dr.syntax
-    def edge(self, ray, end, medium, sampler, active, medium_end=None, tracking=True):
+    def edge(self, ray, end, medium, sampler, active, medium_end=None, tracking=True, check=True):
         """The transmittance of the shadow ray ``ray`` (from a vertex in ``medium`` to the point
         ``end`` = (q, n_q, err_q), as rays.spawn_to takes it; None for a ray to infinity, towards
         an environment or directional emitter), crossing null interfaces (each
         a hit whose BSDF's only lobe is Null; the medium changes by medium_after), passing partly
         null surfaces weighted by their Null lobe's transmission (is_null) and stopping with 0 at
         any other surface. ``medium_end``: the medium the far end says it is in
-        (None: not checked); where the walk arrives in another, the edge is not made (T = 0)
-        and counted as a medium inconsistency. ``tracking`` False: only the distance densities
+        (None: not checked; ``check``: the lanes where it is); where the walk arrives in another,
+        the edge is not made (T = 0) and counted as a medium inconsistency. ``tracking`` False: only the distance densities
         are needed (no ratio tracking; ``tr`` then holds T_maj in heterogeneous parts). Returns
         an EdgeTransmittance."""
         n = dr.width(ray.o)
@@ -394,7 +394,7 @@ class MediumTracer:
             ray_on, medium_on = self._cross_any(si, ray, end, medium)
             ray, medium = dr.select(going, ray_on, ray), dr.select(going, medium_on, medium)
         if medium_end is not None:
-            wrong = ok & (dr.reinterpret_array(mi.UInt32, medium) != dr.reinterpret_array(mi.UInt32, medium_end))
+            wrong = ok & check & (dr.reinterpret_array(mi.UInt32, medium) != dr.reinterpret_array(mi.UInt32, medium_end))
             self._count('medium_inconsistencies', wrong)
             ok &= ~wrong
         return EdgeTransmittance(dr.select(ok, tr, 0.0), tr_hom, tmaj, medium, ok)

@@ -355,7 +355,7 @@ def closed_room(medium='fog'):
     return out
 
 
-def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16):
+def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16, sensor_medium=True):
     """(d) Fog filling a closed room: the box [-1, 1]^3 of diffuse walls (closed_room), filled
     with a homogeneous fog (``sigma_t``, ``albedo``, HG ``g``), the camera inside it at
     (0, 0, 0.9) looking at -z (the sensor in the fog); ``light``: 'area' (a 0.3 x 0.3 square
@@ -368,7 +368,11 @@ def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16):
     whose square is not integrable over the volume around the camera; uniform MIS weights keep
     that strategy), and emitter sampling of the 'point' light from medium vertices (1/d^2 at the
     light: volpath's own estimator). Compare the 'point' variant only between volpath and
-    volpathmis, which share it."""
+    volpathmis, which share it.
+
+    ``sensor_medium`` False: the sensor does not declare the fog it is in (a scene declared
+    inconsistently). volpath's camera rays then see no fog before their first wall, where they
+    enter it; light subpaths' splats must follow them (light_path.camera_edge)."""
     objs = dict(closed_room('fog'))
     if light == 'area':
         objs['light'] = in_medium({'type': 'rectangle', 'to_world': T().translate([0, 0.98, 0]).rotate([1, 0, 0], 90)
@@ -379,7 +383,7 @@ def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16):
                          'emitter': {'type': 'area', 'radiance': rgb(64.0)}}
     else:
         objs['light'] = {'type': 'point', 'position': [0.3, 0.6, -0.2], 'intensity': rgb(0.5), 'medium': ref('fog')}
-    return scene(sensor=_camera(res, [0, 0, 0.9], [0, 0, -1], 75.0, medium='fog'),
+    return scene(sensor=_camera(res, [0, 0, 0.9], [0, 0, -1], 75.0, medium='fog' if sensor_medium else None),
                  fog=homogeneous(sigma_t, albedo, g), **objs)
 
 

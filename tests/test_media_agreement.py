@@ -188,6 +188,8 @@ AGREE = [
     pytest.param('straddling_light', {}, 6, 'lt', 'power', 64, 256, marks=_SLOW),
     ('albedo_grid', {}, 6, 'bdpt', 'power', 64, 256),        # an albedo volume: sigma_s at the collision
     ('open_fog', {}, 5, 'bdpt', 'power', 64, 256),           # fog the sensor carries, no shape bounding it
+    ('fog_room', {'sensor_medium': False}, 5, 'bdpt', 'power', 64, 256),   # a sensor in fog it does not declare
+    ('fog_room', {'sensor_medium': False}, 5, 'lt', 'power', 64, 256),     # (its splats follow the camera's rays)
     ('grid_box', {'scale': 150.0}, 5, 'bdpt', 'power', 64, 256),    # exp(-m L) below float32: T_maj floored
     pytest.param('grid_box', {'scale': 150.0}, 5, 'pt', 'power', 256, 256, marks=_SLOW),
 ]
