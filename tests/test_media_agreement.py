@@ -309,7 +309,10 @@ FULL = [(n, p, d, t, m) + _full_counts(n, p, t, m)
                         ('grid_box', {'g': 0.9}, 8), ('glass_media', {}, 8),
                         ('volumetric_caustic', {}, 8), ('volumetric_caustic', {'glass': False}, 4))
         for t in ('bdpt', 'pt', 'lt') for m in ('power', 'balance', 'uniform')
-        if not (n in CAMERA_IN_MEDIUM and (t == 'lt' or m == 'uniform'))]
+        if not (n in CAMERA_IN_MEDIUM and (t == 'lt' or m == 'uniform')) and (t, m) != ('bdpt', 'uniform')]
+# (not bdpt with uniform weights: its connections between two medium vertices, G = 1 / d^2 with
+# both ends in a volume, have infinite variance there, which the power and balance weights
+# tame; docs/media-scenes.md, "bdpt with uniform weights in media")
 
 
 @pytest.mark.slow
