@@ -205,7 +205,7 @@ class Context:
         if not info.any and not (info.any_null and not self.ad):
             return None, None, None
         from .media import MediumTracer
-        from .media_path import EmitterMedia, outside_medium
+        from .media_path import EmitterMedia, around_sensor, outside_medium
         # a surface with a Null lobe and no medium: the tracer passes it on walks and edges with
         # its Null lobe's probability and transmission (media.MediumTracer), so that a shadow ray
         # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
@@ -227,7 +227,8 @@ class Context:
         stats = MediumStats() if settings['statistics'] else None
         outside = outside_medium(scene, self.offsets, sensor)
         check_infinite_emitters(scene, outside)
-        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets, outside), stats
+        around = around_sensor(scene, self.offsets, sensor, outside)
+        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets, outside, around), stats
 
     def cache_settings(self, settings):
         """light_cache.CacheSettings of the parameters light_paths and connections, or None."""

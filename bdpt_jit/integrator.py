@@ -467,8 +467,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         elif ctx.media is not None:
             info['media'] = {'heterogeneous': ctx.media.info.heterogeneous, 'chromatic': ctx.media.info.chromatic,
                              'merging': None if not ctx.strategies.trace_merge else ('beams' if ctx.beams else 'points'),
-                             'outside': (describe_medium(ctx.emitter_media.outside)
-                                         if ctx.emitter_media.outside is not None else None),
+                             'outside': _described(ctx.emitter_media.outside),
+                             'sensor': _described(ctx.sensor.get_medium()),
+                             'around_sensor': _described(ctx.emitter_media.around_sensor),
                              **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}
         if ctx.light_cache is not None:
             vpp, c = self.cache_run
@@ -588,6 +589,11 @@ Example (Python)::
     scene = mi.load_file('scenes/cornell-box.xml')
     image = mi.render(scene, integrator=mi.load_dict({{'type': 'bdpt', 'max_depth': 8}}))
 """
+
+
+def _described(medium):
+    """scene_check.describe_medium, None for vacuum."""
+    return describe_medium(medium) if medium is not None else None
 
 
 def lattice_step(ctx):

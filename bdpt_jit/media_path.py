@@ -233,9 +233,10 @@ class EmitterMedia:
     and no shape bounds: Mitsuba's volpath lights the fog with it, as bdpt now does)."""
     PROBES = 4
 
-    def __init__(self, scene, offsets, outside=None):
+    def __init__(self, scene, offsets, outside=None, around=None):
         self.scene, self.offsets = scene, offsets
         self.outside = outside                  # the medium outside every shape (None: vacuum)
+        self.around_sensor = around             # the medium the shapes put around the sensor (around_sensor)
         ids, varies = {}, {}
         for em in scene.emitters():
             key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
@@ -312,6 +313,27 @@ def enclosing_medium(scene, offsets, p, d, active, outside=None, max_hits=64):
 OUTSIDE_RAYS = 64       # rays from the sensor that find the medium outside every shape (``outside_medium``)
 
 
+def sensor_rays():
+    """OUTSIDE_RAYS directions over the sphere (a Fibonacci sphere), computed in the kernel
+    (arrays made from numpy have their memory's alignment in the kernel's code: its hash varied
+    from render to render)."""
+    k = dr.arange(mi.Float, OUTSIDE_RAYS) + 0.5
+    z = 1.0 - 2.0 * k / OUTSIDE_RAYS
+    phi = dr.pi * (1.0 + 5.0 ** 0.5) * k
+    rho = dr.sqrt(dr.maximum(0.0, 1.0 - z * z))
+    return mi.Vector3f(rho * dr.cos(phi), rho * dr.sin(phi), z)
+
+
+def medium_by_id(scene, sensor, ids):
+    """The scene's medium whose id (``_medium_id``) most of ``ids`` hold (None: vacuum, or no id)."""
+    if ids.size == 0:
+        return None
+    values, counts = np.unique(ids, return_counts=True)
+    best = int(values[np.argmax(counts)])
+    from .scene_check import scene_media
+    return next((m for m in scene_media(scene, sensor) if _medium_id(m) == best), None)
+
+
 def outside_medium(scene, offsets, sensor, max_hits=256):
     """The medium outside every shape (None: vacuum), as the scene's declarations say: rays
     from the sensor's position start in its medium, take at each medium transition they pass
@@ -319,15 +341,8 @@ def outside_medium(scene, offsets, sensor, max_hits=256):
     the light) and leave the scene in the outside's medium; the medium most of them leave in.
     Vacuum where no ray leaves (max_hits shapes on each way). A sensor in a fog that no shape
     bounds (Mitsuba's simplest fog: the sensor's ``medium``) finds that fog outside."""
-    # a Fibonacci sphere of directions, computed in the kernel (arrays made from numpy have
-    # their memory's alignment in the kernel's code: its hash varied from render to render)
-    k = dr.arange(mi.Float, OUTSIDE_RAYS) + 0.5
-    z = 1.0 - 2.0 * k / OUTSIDE_RAYS
-    phi = dr.pi * (1.0 + 5.0 ** 0.5) * k
-    rho = dr.sqrt(dr.maximum(0.0, 1.0 - z * z))
-    d = mi.Vector3f(rho * dr.cos(phi), rho * dr.sin(phi), z)
     origin = mi.Point3f(sensor.world_transform().translation())
-    ray = mi.Ray3f(dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, d)
+    ray = mi.Ray3f(dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, sensor_rays())
     medium = medium_at_sensor(sensor, OUTSIDE_RAYS)
     going, left = dr.full(mi.Bool, True, OUTSIDE_RAYS), dr.zeros(mi.Bool, OUTSIDE_RAYS)
     for _ in range(max_hits):           # (a Python loop: once per render, on 64 rays)
@@ -338,13 +353,20 @@ def outside_medium(scene, offsets, sensor, max_hits=256):
         ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
         if not dr.any(going):
             break
-    ids = np.array(dr.reinterpret_array(mi.UInt32, medium))[np.array(left)]
-    if ids.size == 0:
-        return None
-    values, counts = np.unique(ids, return_counts=True)
-    best = int(values[np.argmax(counts)])
-    from .scene_check import scene_media
-    return next((m for m in scene_media(scene, sensor) if _medium_id(m) == best), None)
+    return medium_by_id(scene, sensor, np.array(dr.reinterpret_array(mi.UInt32, medium))[np.array(left)])
+
+
+def around_sensor(scene, offsets, sensor, outside):
+    """The medium the shapes put around the sensor's position (None: vacuum): along each of
+    OUTSIDE_RAYS directions the side of the first medium transition it meets that faces the
+    sensor (``enclosing_medium``; a ray that leaves the scene finds ``outside``), the medium
+    most of them find. A sensor that declares another (a camera in a fog it does not declare)
+    renders as Mitsuba's volpath renders it, its rays in its own medium up to their first
+    boundary (light_path.camera_edge), and last_render_info['media'] tells both."""
+    origin = mi.Point3f(sensor.world_transform().translation())
+    found = enclosing_medium(scene, offsets, dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, sensor_rays(),
+                             dr.full(mi.Bool, True, OUTSIDE_RAYS), outside)
+    return medium_by_id(scene, sensor, np.array(dr.reinterpret_array(mi.UInt32, found)))
 
 
 def stored_vertex(v, medium, in_medium):

@@ -232,6 +232,31 @@ def test_the_medium_outside_every_shape():
         assert outside == (sc.sensors()[0].get_medium() if fog else None), name
 
 
+def test_the_medium_around_the_sensor_is_told_where_the_sensor_declares_another():
+    """media_path.around_sensor: the fog room's walls put their fog around the camera whether the
+    sensor declares it or not; vacuum around the grid box's camera; the open fog's, which no
+    shape bounds, from the outside medium. last_render_info['media'] gives the sensor's own
+    medium and that one, and bdpt-jit render's summary says where they differ (the camera's rays
+    then see no fog up to their first wall, as volpath renders it: the agreement rows above)."""
+    from bdpt_jit.cli.summary import _bdpt_statistics
+    from bdpt_jit.media_path import around_sensor
+    from bdpt_jit.rays import RayOffsets
+    for name, params, fog in [('fog_room', {}, True), ('fog_room', {'sensor_medium': False}, True),
+                              ('grid_box', {}, False), ('open_fog', {}, True)]:
+        sc, outside = _outside(name, **params)
+        around = around_sensor(sc, RayOffsets(sc), sc.sensors()[0], outside)
+        assert (around is not None) == fog and (around is None or around.id() == 'fog'), (name, params)
+    integ = mi.load_dict(bdpt('bdpt', 'power', 5))          # (the kernels of the agreement rows)
+    for params, told in [({'sensor_medium': False}, True), ({}, False)]:
+        mi.render(ms.load('fog_room', **params), integrator=integ, spp=1)
+        media = integ.last_render_info['media']
+        assert media['around_sensor'] == "'fog' (homogeneous)", params
+        assert media['sensor'] == (None if told else "'fog' (homogeneous)"), params
+        line = _bdpt_statistics(integ.last_render_info).get('sensor_medium')
+        assert (line is not None) == told and (not told or line.startswith(
+            "the sensor declares no medium but lies in 'fog' (homogeneous)")), line
+
+
 def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
     """A point light and a sphere light that declare no medium, in a fog that no shape bounds,
     lie in that fog (media_path.EmitterMedia: their probe rays leave the scene, where the

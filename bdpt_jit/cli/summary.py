@@ -100,6 +100,10 @@ def _bdpt_statistics(info):
                           f"{media['medium_inconsistencies']:,} connections refused (their ends disagree about the medium)")
         if media.get('beam_paths') is not None:     # merges inside media by beams (beams.py)
             stats['media'] += f"; beams gathered from {media['beam_paths']:,} light subpaths an iteration"
+    if media.get('around_sensor', media.get('sensor')) != media.get('sensor'):     # media_path.around_sensor
+        stats['sensor_medium'] = (f"the sensor declares {media['sensor'] or 'no medium'} but lies in "
+                                  f"{media['around_sensor'] or 'vacuum'} by the shapes' declarations: its rays "
+                                  "travel in its own up to their first medium boundary, as Mitsuba's volpath renders it")
     if 'auto' in info:                     # technique auto (auto.py)
         a = info['auto']
         decided = a.get('decisions', [])
@@ -144,7 +148,7 @@ def print_summary(stats, res, out, png):
             p(f"  left out        {stats['strategies_left_out']}")
         for name, on, why in features(res.info):
             p(f"  {'needed' if on else 'left out':15} {name}" + (f" ({why})" if on else ''))
-    for key in ('light_cache', 'auto', 'media'):
+    for key in ('light_cache', 'auto', 'media', 'sensor_medium'):
         if key in stats:
             p(f"  {key.replace('_', ' '):15} {stats[key]}")
     if res.layers is not None:
