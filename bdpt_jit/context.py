@@ -205,7 +205,7 @@ class Context:
         if not info.any and not (info.any_null and not self.ad):
             return None, None, None
         from .media import MediumTracer
-        from .media_path import EmitterMedia, around_sensor, outside_medium
+        from .media_path import EmitterMedia, around_sensor, outside_medium, sensor_walk
         # a surface with a Null lobe and no medium: the tracer passes it on walks and edges with
         # its Null lobe's probability and transmission (media.MediumTracer), so that a shadow ray
         # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
@@ -225,10 +225,12 @@ class Context:
             # redefinition of function" in a virtual call) after some process histories
             check_parameters(mi.traverse(scene), scene)
         stats = MediumStats() if settings['statistics'] else None
-        outside = outside_medium(scene, self.offsets, sensor)
+        walk = sensor_walk(scene, self.offsets, sensor)
+        outside = outside_medium(scene, self.offsets, sensor, walk)
         check_infinite_emitters(scene, outside)
         around = around_sensor(scene, self.offsets, sensor, outside)
-        return MediumTracer(scene, self.offsets, info, stats), EmitterMedia(scene, self.offsets, outside, around), stats
+        emitter_media = EmitterMedia(scene, self.offsets, outside, around, not walk.inconsistent)
+        return MediumTracer(scene, self.offsets, info, stats), emitter_media, stats
 
     def cache_settings(self, settings):
         """light_cache.CacheSettings of the parameters light_paths and connections, or None."""

@@ -470,6 +470,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                              'outside': _described(ctx.emitter_media.outside),
                              'sensor': _described(ctx.sensor.get_medium()),
                              'around_sensor': _described(ctx.emitter_media.around_sensor),
+                             'declared_consistently': ctx.emitter_media.consistent,
                              **(ctx.medium_stats.summary() if ctx.medium_stats is not None else {})}
         if ctx.light_cache is not None:
             vpp, c = self.cache_run

@@ -163,19 +163,21 @@ class LightTracer:
         its near end y. In a scene with media it is walked from the camera, as the camera
         subpaths' first segments (and Mitsuba's volpath's camera rays) see it: in the sensor's
         medium, changing at medium transitions; a y on a medium transition, or on the emitter,
-        takes the medium the walk arrives in, any other y must be in it, else the edge is not made.
-        Where the scene declares its media consistently, a walk from y finds the same edge; where
-        not (a sensor in a fog it does not declare), the splats follow the camera subpaths, which
-        see no fog before their first boundary (refused before: bdpt 5% dark against volpath, lt
-        black). Without media (Null lobes only) it is walked from y, which passes y's own surface:
-        a walk from the camera can meet it first where intersections are inexact (a hair fibre's
-        far side: lt 1.6% dark on hair curves)."""
+        takes the medium the walk arrives in, any other y must be in it, else the edge is not
+        made. Where the media are declared consistently a walk from y finds the same edge; where
+        not (a sensor in a fog it does not declare: bdpt was 5% dark against volpath there, lt
+        black; a light across a boundary), the splats follow the camera subpaths. It is walked
+        from y, as before, without media (Null lobes only) and in consistently declared scenes
+        with shapes whose hits are inexact (curves, SDF grids, shapes in instances), where a walk
+        from the camera can meet y's own surface first (a hair fibre's far side: lt 1.6% dark;
+        a quadric inside an instance); the walk from y passes it."""
         c = self.ctx
         n = dr.width(ds.p)
         y_end, medium_y = y
         cam = (c.camera.near_point(ds), mi.Normal3f(0.0), mi.Float(0.0))
         near = v.density_factor(c.media.info) if v is not None else media_path.surface_start(n)
-        if not c.media.info.any:
+        inexact = c.offsets.coarse or c.offsets.one_sided
+        if not c.media.info.any or (inexact and c.emitter_media.consistent):
             return media_path.edge_terms(c, self.sampler, ray, cam, (medium_y, medium_at_sensor(c.sensor, n)),
                                          (near, media_path.surface_start(n)), active)
         check = False if v is None else v.in_medium | ~v.surf.si.shape.is_medium_transition()

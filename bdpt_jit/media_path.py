@@ -233,16 +233,20 @@ class EmitterMedia:
     and no shape bounds: Mitsuba's volpath lights the fog with it, as bdpt now does)."""
     PROBES = 4
 
-    def __init__(self, scene, offsets, outside=None, around=None):
+    def __init__(self, scene, offsets, outside=None, around=None, consistent=True):
         self.scene, self.offsets = scene, offsets
         self.outside = outside                  # the medium outside every shape (None: vacuum)
         self.around_sensor = around             # the medium the shapes put around the sensor (around_sensor)
+        self.consistent = consistent            # no inconsistent declaration seen (sensor_walk), no light across a boundary
         ids, varies = {}, {}
         for em in scene.emitters():
             key = int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(em))[0])
             found = self.emitter_media(em)
             ids[key] = found[0] if len(found) == 1 else 0
             varies[key] = int(len(found) > 1)
+            shape = em.get_shape()
+            # (a light across a boundary that is not its own shape's: its points' media differ)
+            self.consistent &= not (varies[key] and (shape is None or not shape.is_medium_transition()))
         size = max(list(ids) + [0]) + 1
         self.table = mi.UInt32([ids.get(k, 0) for k in range(size)])
         self.per_point = mi.UInt32([varies.get(k, 0) for k in range(size)]) if any(varies.values()) else None
@@ -262,6 +266,13 @@ class EmitterMedia:
         ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
         n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
         found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True), self.outside)
+        # on from the probe points through every shape: a declaration that disagrees with the
+        # medium found (nested shapes that each declare a medium inside and none outside)
+        shape = em.get_shape()
+        if shape is None or not shape.is_medium_transition():     # (on a boundary: the side it faces)
+            err = offsets.error(ps.p, mi.ShapePtr(shape) if shape is not None else None, hit=False)
+            start = spawn(ps.p, mi.Normal3f(n), err, n, 0.0)
+            self.consistent &= not dr.any(declaration_walk(scene, offsets, start, found)[2])
         return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))
 
     def medium(self, emitter, p, n, d, active=True):
@@ -313,11 +324,11 @@ def enclosing_medium(scene, offsets, p, d, active, outside=None, max_hits=64):
 OUTSIDE_RAYS = 64       # rays from the sensor that find the medium outside every shape (``outside_medium``)
 
 
-def sensor_rays():
-    """OUTSIDE_RAYS directions over the sphere (a Fibonacci sphere), computed in the kernel
-    (arrays made from numpy have their memory's alignment in the kernel's code: its hash varied
-    from render to render)."""
-    k = dr.arange(mi.Float, OUTSIDE_RAYS) + 0.5
+def sensor_rays(n=OUTSIDE_RAYS):
+    """OUTSIDE_RAYS directions over the sphere (a Fibonacci sphere; ``n`` lanes, those past
+    OUTSIDE_RAYS unused), computed in the kernel (arrays made from numpy have their memory's
+    alignment in the kernel's code: its hash varied from render to render)."""
+    k = dr.minimum(dr.arange(mi.Float, n), OUTSIDE_RAYS - 1) + 0.5
     z = 1.0 - 2.0 * k / OUTSIDE_RAYS
     phi = dr.pi * (1.0 + 5.0 ** 0.5) * k
     rho = dr.sqrt(dr.maximum(0.0, 1.0 - z * z))
@@ -334,26 +345,67 @@ def medium_by_id(scene, sensor, ids):
     return next((m for m in scene_media(scene, sensor) if _medium_id(m) == best), None)
 
 
-def outside_medium(scene, offsets, sensor, max_hits=256):
-    """The medium outside every shape (None: vacuum), as the scene's declarations say: rays
-    from the sensor's position start in its medium, take at each medium transition they pass
-    the side they go into (shapes of any BSDF are passed: this follows the declarations, not
-    the light) and leave the scene in the outside's medium; the medium most of them leave in.
-    Vacuum where no ray leaves (max_hits shapes on each way). A sensor in a fog that no shape
-    bounds (Mitsuba's simplest fog: the sensor's ``medium``) finds that fog outside."""
-    origin = mi.Point3f(sensor.world_transform().translation())
-    ray = mi.Ray3f(dr.zeros(mi.Point3f, OUTSIDE_RAYS) + origin, sensor_rays())
-    medium = medium_at_sensor(sensor, OUTSIDE_RAYS)
-    going, left = dr.full(mi.Bool, True, OUTSIDE_RAYS), dr.zeros(mi.Bool, OUTSIDE_RAYS)
-    for _ in range(max_hits):           # (a Python loop: once per render, on 64 rays)
+CAMERA_PROBES = 16      # and a CAMERA_PROBES^2 grid of camera rays look for inconsistent declarations (``sensor_walk``)
+
+
+class SensorWalk:
+    """What rays from the sensor found, walking through every shape (``sensor_walk``), one field a line."""
+
+    def __init__(self, medium, left, inconsistent):
+        self.medium = medium                # the medium each ray ended in (numpy ids, ``_medium_id``)
+        self.left = left                    # the rays that left the scene (numpy bool)
+        self.inconsistent = inconsistent    # a ray met a medium transition whose side it came from declares another medium
+
+
+def sensor_walk(scene, offsets, sensor, max_hits=256):
+    """OUTSIDE_RAYS rays from the sensor's position in every direction and a grid of camera
+    rays, each starting in the sensor's medium and taking at each medium transition it passes
+    the side it goes into (shapes of any BSDF are passed: this follows the declarations, not the
+    light), up to max_hits shapes. A SensorWalk of the first OUTSIDE_RAYS (outside_medium) and
+    whether any ray met a transition that declares, on the side the ray came from, another
+    medium than the one the ray was in: a sensor in a fog it does not declare, nested shapes
+    that each declare a medium inside and none outside (light_path.camera_edge)."""
+    n = OUTSIDE_RAYS + CAMERA_PROBES * CAMERA_PROBES
+    k = dr.arange(mi.UInt32, n)
+    c = dr.maximum(mi.Int32(k) - OUTSIDE_RAYS, 0)
+    uv = mi.Point2f((mi.Float(c % CAMERA_PROBES) + 0.5) / CAMERA_PROBES, (mi.Float(c // CAMERA_PROBES) + 0.5) / CAMERA_PROBES)
+    cam, _ = sensor.sample_ray(sensor.shutter_open(), 0.5, uv, mi.Point2f(0.5))
+    around = k < OUTSIDE_RAYS
+    d = sensor_rays(n)
+    ray = mi.Ray3f(dr.select(around, mi.Point3f(sensor.world_transform().translation()), cam.o),
+                   dr.select(around, d, cam.d))
+    medium, left, bad = declaration_walk(scene, offsets, ray, medium_at_sensor(sensor, n), max_hits)
+    ids = np.array(dr.reinterpret_array(mi.UInt32, medium))
+    return SensorWalk(ids[:OUTSIDE_RAYS], np.array(left)[:OUTSIDE_RAYS], bool(np.any(np.array(bad))))
+
+
+def declaration_walk(scene, offsets, ray, medium, max_hits=256):
+    """Rays ``ray`` starting in ``medium`` (per lane), taking at each medium transition they pass
+    the side they go into, through every shape (up to max_hits). Returns (the medium each ends
+    in, the rays that left the scene, the rays that met a transition whose side they came from
+    declares another medium than the one they were in)."""
+    n = dr.width(ray.o)
+    going, left, bad = dr.full(mi.Bool, True, n), dr.zeros(mi.Bool, n), dr.zeros(mi.Bool, n)
+    for _ in range(max_hits):           # (a Python loop: once per render, on a few hundred rays)
         si = offsets.intersect(scene, ray, going)
         left |= going & ~si.is_valid()
         going &= si.is_valid()
+        bad |= going & si.is_medium_transition() & (dr.reinterpret_array(mi.UInt32, si.target_medium(-ray.d))
+                                                    != dr.reinterpret_array(mi.UInt32, medium))
         medium = dr.select(going, medium_after(si, ray.d, medium), medium)
         ray = dr.select(going, spawn(si.p, si.n, offsets.error(si.p, si.shape), ray.d, ray.time), ray)
         if not dr.any(going):
             break
-    return medium_by_id(scene, sensor, np.array(dr.reinterpret_array(mi.UInt32, medium))[np.array(left)])
+    return medium, left, bad
+
+
+def outside_medium(scene, offsets, sensor, walk=None):
+    """The medium outside every shape (None: vacuum), as the scene's declarations say: the
+    medium most of the sensor_walk's rays in every direction leave the scene in; vacuum where
+    none leaves. A sensor in a fog that no shape bounds (Mitsuba's simplest fog: the sensor's
+    ``medium``) finds that fog outside."""
+    walk = walk or sensor_walk(scene, offsets, sensor)
+    return medium_by_id(scene, sensor, walk.medium[walk.left])
 
 
 def around_sensor(scene, offsets, sensor, outside):

@@ -123,6 +123,7 @@ class RayOffsets:
         for i in coarse:
             rel[i] = COARSE_REL
         self.per_shape = bool(meshes or coarse)         # else every hit takes ERR_REL
+        self.coarse = bool(coarse)               # SDF grids or shapes in instances: their hits are inexact
         self.table = mi.Float(table)
         self.rel = mi.Float(rel)
         self.any_mesh = bool(meshes)             # any mesh projected: else the kernels leave it out

@@ -255,6 +255,27 @@ def test_the_medium_around_the_sensor_is_told_where_the_sensor_declares_another(
         line = _bdpt_statistics(integ.last_render_info).get('sensor_medium')
         assert (line is not None) == told and (not told or line.startswith(
             "the sensor declares no medium but lies in 'fog' (homogeneous)")), line
+        assert media['declared_consistently'] == (not told), params
+
+
+def test_inconsistent_declarations_are_found():
+    """media_path.sensor_walk and EmitterMedia: a scene's media are declared inconsistently where
+    a ray from the sensor meets a medium transition whose side it comes from declares another
+    medium than the one it was in (the fog room without the sensor's medium), or a light lies
+    across a boundary that is not its own shape's (straddling_light); not where a light's own
+    shape is the boundary (the volumetric caustic's sphere light, fog outside), nor in the other
+    scenes. light_path.camera_edge walks splats from the camera where they are found."""
+    from bdpt_jit.media_path import EmitterMedia, sensor_walk
+    from bdpt_jit.rays import RayOffsets
+    for name, params, consistent in [('fog_room', {}, True), ('fog_room', {'sensor_medium': False}, False),
+                                     ('fog_room', {'light': 'sphere'}, True), ('straddling_light', {}, False),
+                                     ('volumetric_caustic', {}, True), ('grid_box', {}, True),
+                                     ('open_fog', {}, True), ('glass_media', {}, True)]:
+        sc, outside = _outside(name, **params)
+        offsets = RayOffsets(sc)
+        walk = sensor_walk(sc, offsets, sc.sensors()[0])
+        got = EmitterMedia(sc, offsets, outside, consistent=not walk.inconsistent).consistent
+        assert got == consistent, (name, params)
 
 
 def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
