@@ -272,7 +272,7 @@ class EmitterMedia:
         if shape is None or not shape.is_medium_transition():     # (on a boundary: the side it faces)
             err = offsets.error(ps.p, mi.ShapePtr(shape) if shape is not None else None, hit=False)
             start = spawn(ps.p, mi.Normal3f(n), err, n, 0.0)
-            self.consistent &= not dr.any(declaration_walk(scene, offsets, start, found)[2])
+            self.consistent &= not dr.any(declaration_walk(scene, offsets, start, found, PROBE_HITS)[2])
         return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))
 
     def medium(self, emitter, p, n, d, active=True):
@@ -346,6 +346,7 @@ def medium_by_id(scene, sensor, ids):
 
 
 CAMERA_PROBES = 16      # and a CAMERA_PROBES^2 grid of camera rays look for inconsistent declarations (``sensor_walk``)
+PROBE_HITS = 32         # the shapes an emitter's probe rays pass at most looking for them (EmitterMedia)
 
 
 class SensorWalk:
