@@ -260,9 +260,11 @@ class EmitterMedia:
         if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
             return [_medium_id(self.outside)]
         scene, offsets = self.scene, self.offsets
-        g = (np.arange(self.PROBES) + 0.5) / self.PROBES
-        u, v = np.meshgrid(g, g)
-        ps, _ = em.sample_position(0.0, mi.Point2f(u.ravel(), v.ravel()))
+        # (the grid computed in the kernel: arrays made from numpy put their memory's alignment
+        # in the kernels' code, whose hash then varied from render to render: outside_medium)
+        k = dr.arange(mi.UInt32, self.PROBES * self.PROBES)
+        ps, _ = em.sample_position(0.0, (mi.Point2f(mi.Float(k % self.PROBES), mi.Float(k // self.PROBES)) + 0.5)
+                                   / self.PROBES)
         ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
         n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
         found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True), self.outside)
