@@ -180,7 +180,7 @@ class LightTracer:
         if not c.media.info.any or (inexact and c.emitter_media.consistent):
             return media_path.edge_terms(c, self.sampler, ray, cam, (medium_y, medium_at_sensor(c.sensor, n)),
                                          (near, media_path.surface_start(n)), active)
-        check = False if v is None else v.in_medium | ~v.surf.si.shape.is_medium_transition()
+        check = False if v is None else v.in_medium | ~v.surf.si.is_medium_transition()
         back = spawn_to(cam, y_end, ray.time, c.offsets.far_rel, ray.wavelengths)
         et = c.media.edge(back, y_end, medium_at_sensor(c.sensor, n), self.sampler, active, medium_y, check=check)
         if c.stats is not None:
@@ -257,4 +257,3 @@ def t1_shadow_ray(ctx, ray, ds, end, si):
         return ray
     return spawn_to((ctx.camera.near_point(ds), mi.Normal3f(0.0), 0.0), end, si.time, ctx.offsets.far_rel,
                     si.wavelengths)
-

@@ -268,13 +268,6 @@ class EmitterMedia:
         ps = sphere_positions(ps, mi.UInt32(0), sphere_placements([em], [0], 1))
         n = dr.select(dr.squared_norm(ps.n) > 0, mi.Vector3f(ps.n), mi.Vector3f(0.0, 0.0, 1.0))
         found = enclosing_medium(scene, offsets, mi.Point3f(ps.p), n, mi.Bool(True), self.outside)
-        # on from the probe points through every shape: a declaration that disagrees with the
-        # medium found (nested shapes that each declare a medium inside and none outside)
-        shape = em.get_shape()
-        if shape is None or not shape.is_medium_transition():     # (on a boundary: the side it faces)
-            err = offsets.error(ps.p, mi.ShapePtr(shape) if shape is not None else None, hit=False)
-            start = spawn(ps.p, mi.Normal3f(n), err, n, 0.0)
-            self.consistent &= not dr.any(declaration_walk(scene, offsets, start, found, PROBE_HITS)[2])
         return sorted(set(int(i) for i in np.array(dr.reinterpret_array(mi.UInt32, found))))
 
     def medium(self, emitter, p, n, d, active=True):
@@ -348,7 +341,6 @@ def medium_by_id(scene, sensor, ids):
 
 
 CAMERA_PROBES = 16      # and a CAMERA_PROBES^2 grid of camera rays look for inconsistent declarations (``sensor_walk``)
-PROBE_HITS = 32         # the shapes an emitter's probe rays pass at most looking for them (EmitterMedia)
 
 
 class SensorWalk:
