@@ -448,6 +448,28 @@ def volumetric_caustic(glass=True, light_radius=0.05, sigma_t=0.3, albedo=0.9, r
                  fog=homogeneous(sigma_t, albedo), **objs)
 
 
+def fog_box(glass=True, res=16):
+    """(g') Bitterli's volumetric caustic, as its Mitsuba files declare its media: the box
+    [-1, 1]^3 of closed_room's walls declaring no medium, its front face (z = 1) a ``null``
+    rectangle with the fog (homogeneous, sigma_t 0.5, albedo 0.9) as interior, a glass sphere
+    (radius 0.3 at (-0.2, -0.1, 0.1), IOR 1.5) with the fog as exterior and vacuum inside, and a
+    square light (side 0.6, radiance 5, black) 2 cm under the ceiling facing down with the fog as
+    exterior only (vacuum behind it, in the gap to the ceiling). The camera outside the box, in
+    vacuum, at (0, 0, 3.5) looking at -z. volpath keeps a path's medium where it reflects off a
+    wall that declares none; the light subpaths' vertices on the walls must be in the fog too,
+    else their connections to the camera subpaths' are refused."""
+    objs = {name: w for name, w in closed_room(None).items() if name != 'front'}
+    objs['front'] = {'type': 'rectangle', 'to_world': T().translate([0, 0, 1]), 'bsdf': {'type': 'null'},
+                     'interior': ref('fog')}
+    objs['light'] = {'type': 'rectangle', 'to_world': T().translate([0, 0.98, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                     'bsdf': diffuse(0.0), 'exterior': ref('fog'),
+                     'emitter': {'type': 'area', 'radiance': rgb(5.0)}}
+    if glass:
+        objs['glass'] = {'type': 'sphere', 'center': [-0.2, -0.1, 0.1], 'radius': 0.3, 'exterior': ref('fog'),
+                         'bsdf': {'type': 'dielectric', 'int_ior': 1.5, 'ext_ior': 1.0}}
+    return scene(sensor=_camera(res, [0, 0, 3.5], [0, 0, 0], 34.0), fog=homogeneous(0.5, 0.9), **objs)
+
+
 def thin_glass(res=16):
     """(f') BSDFs with a Null lobe beside others in a scene with media (as Mitsuba's own test
     scenes, tests/scenes/participating_media, put them): a thin dielectric sphere (radius 0.5 at
@@ -560,7 +582,7 @@ BUILDERS = {
     'single_scatter': single_scatter, 'fog_room': fog_room, 'grid_box': grid_box,
     'glass_media': glass_media, 'volumetric_caustic': volumetric_caustic, 'thin_glass': thin_glass,
     'straddling_light': straddling_light, 'albedo_grid': albedo_grid, 'open_fog': open_fog,
-    'open_smoke': open_smoke,
+    'open_smoke': open_smoke, 'fog_box': fog_box,
 }
 
 

@@ -191,6 +191,9 @@ AGREE = [
     ('fog_room', {'sensor_medium': False}, 5, 'bdpt', 'power', 64, 256),   # a sensor in fog it does not declare
     ('fog_room', {'sensor_medium': False}, 5, 'lt', 'power', 64, 256),     # (its splats follow the camera's rays)
     ('grid_box', {'scale': 150.0}, 5, 'bdpt', 'power', 64, 256),    # exp(-m L) below float32: T_maj floored
+    ('fog_box', {}, 6, 'bdpt', 'power', 64, 256),     # Bitterli's declarations: walls none, a null front face
+    ('fog_box', {}, 6, 'lt', 'power', 64, 256),
+    pytest.param('fog_box', {}, 6, 'vcm', 'power', 64, 256, marks=_SLOW),
     pytest.param('grid_box', {'scale': 150.0}, 5, 'pt', 'power', 256, 256, marks=_SLOW),
 ]
 
