@@ -211,7 +211,8 @@ class Context:
         # through a mask or thin glass is not blocked (Mitsuba's path blocks it: a point light
         # behind a mask lit nothing); vacuum everywhere, so no distance is sampled
         if not info.any:
-            return MediumTracer(scene, self.offsets, info, None), EmitterMedia(scene, self.offsets), None
+            emitter_media = EmitterMedia(scene, self.offsets, placements=self.emitters.sphere_placements)
+            return MediumTracer(scene, self.offsets, info, None), emitter_media, None
         first = describe_medium(scene_media(scene, sensor)[0])
         if self.ad:
             raise UnsupportedSceneError(
@@ -229,7 +230,8 @@ class Context:
         outside = outside_medium(scene, self.offsets, sensor, walk)
         check_infinite_emitters(scene, outside)
         around = around_sensor(scene, self.offsets, sensor, outside)
-        emitter_media = EmitterMedia(scene, self.offsets, outside, around, not walk.inconsistent)
+        emitter_media = EmitterMedia(scene, self.offsets, outside, around, not walk.inconsistent,
+                                     self.emitters.sphere_placements)
         return MediumTracer(scene, self.offsets, info, stats), emitter_media, stats
 
     def cache_settings(self, settings):

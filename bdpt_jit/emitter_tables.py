@@ -99,28 +99,38 @@ def _sphere_placement(shape):
     return [float(x) for x in m[:3, 3]], float(np.linalg.norm(m[:3, 0]))
 
 
-def sphere_table(emitters, ids, size):
-    """(radius, centre) per emitter id of the ``cone_sphere`` emitters, whose emitter sampling from
-    points that see them small is done by bdpt (direct.py); radius 0 for every other emitter."""
-    sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
-    for e, i in zip(emitters, ids):
-        if cone_sphere(e):
-            sph_c[i], sph_r[i] = _sphere_placement(e.get_shape())
-    return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
-
-
-def sphere_placements(emitters, ids, size):
-    """(sign, centre, radius) per emitter id of every sphere area emitter, for sphere_positions;
-    sign 0 for every other emitter, +1 or -1 (flipped normals) for a sphere. None if there is
-    none."""
-    sign, centre, radius = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)], [0.0] * size
+def sphere_shapes(emitters, ids):
+    """{emitter id: (sign, centre, radius)} of every sphere area emitter: sign +1, or -1 with
+    flipped normals, and its placement (_sphere_placement: one mi.traverse a sphere, shared by
+    the tables below and media_path.EmitterMedia)."""
+    out = {}
     for e, i in zip(emitters, ids):
         shape = e.get_shape()
         if shape is not None and shape.class_name() == 'Sphere':
-            sign[i] = -1.0 if shape.has_flipped_normals() else 1.0
-            centre[i], radius[i] = _sphere_placement(shape)
-    if not any(sign):
+            out[i] = (-1.0 if shape.has_flipped_normals() else 1.0,) + tuple(_sphere_placement(shape))
+    return out
+
+
+def sphere_table(emitters, ids, size, spheres):
+    """(radius, centre) per emitter id of the ``cone_sphere`` emitters, whose emitter sampling from
+    points that see them small is done by bdpt (direct.py); radius 0 for every other emitter.
+    ``spheres``: sphere_shapes."""
+    sph_r, sph_c = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)]
+    for e, i in zip(emitters, ids):
+        if cone_sphere(e):
+            _, sph_c[i], sph_r[i] = spheres[i]
+    return mi.Float(sph_r), mi.Point3f([v[0] for v in sph_c], [v[1] for v in sph_c], [v[2] for v in sph_c])
+
+
+def sphere_placements(spheres, size):
+    """(sign, centre, radius) per emitter id of every sphere area emitter (``spheres``:
+    sphere_shapes), for sphere_positions; sign 0 for every other emitter, +1 or -1 (flipped
+    normals) for a sphere. None if there is none."""
+    if not spheres:
         return None
+    sign, centre, radius = [0.0] * size, [[0.0, 0.0, 0.0] for _ in range(size)], [0.0] * size
+    for i, (sign_i, centre_i, radius_i) in spheres.items():
+        sign[i], centre[i], radius[i] = sign_i, centre_i, radius_i
     return (mi.Float(sign), mi.Point3f([v[0] for v in centre], [v[1] for v in centre], [v[2] for v in centre]),
             mi.Float(radius))
 

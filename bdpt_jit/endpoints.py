@@ -33,7 +33,7 @@ from .rays import RayOffsets, no_wavelengths, offset_origin, scene_bbox
 from .direct import SMALL_SPHERE, DirectSampling  # noqa: F401  (SMALL_SPHERE: re-exported)
 from .smooth_emitters import SmoothEmitters, emission_direction, emission_pdf_w
 from .emitter_tables import (emitter_kinds, inverse_areas, projector_cone, remapped_textures,  # noqa: F401
-                             sphere_placements, sphere_positions, sphere_radiance, sphere_table,
+                             sphere_placements, sphere_positions, sphere_radiance, sphere_shapes, sphere_table,
                              spot_cones)     # (projector_cone: re-exported)
 
 
@@ -125,14 +125,15 @@ class EmitterTable(DirectSampling):
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0]) for e in emitters]
         size = max(ids + [0]) + 1
         self.cone_cos, self.cone_axis = spot_cones(emitters, ids, size)
-        self.sph_r, self.sph_c = sphere_table(emitters, ids, size)
+        spheres = sphere_shapes(emitters, ids)
+        self.sph_r, self.sph_c = sphere_table(emitters, ids, size, spheres)
         self.has_sphere = bool(np.any(np.array(self.sph_r) > 0))
         # every emitter a sphere of constant radiance (direct.py): its cone sampled here from any
         # point outside it, its radiance read from this table
         self.sph_le = sphere_radiance(emitters, ids, size) if self.has_sphere else None
         self.all_spheres = self.sph_le is not None
         self.inv_area = inverse_areas(emitters, ids, size)
-        self.sphere_placements = sphere_placements(emitters, ids, size)
+        self.sphere_placements = sphere_placements(spheres, size)
         self.uniform_starts = remapped_textures(emitters, ids, size) if self.has_textured_area else None
         smooth = SmoothEmitters(scene, emitters, ids, size) if self.has_area else None
         self.smooth = smooth if smooth is not None and smooth.present else None     # (smooth_emitters.py)

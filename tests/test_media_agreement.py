@@ -304,6 +304,39 @@ def test_lights_that_declare_no_medium_lie_in_an_unbounded_fog():
     assert integ.last_render_info['media']['outside'] is None
 
 
+def test_each_light_s_medium_is_found_among_many():
+    """media_path.EmitterMedia probes every light that declares no medium in one walk: each gets
+    the medium its own probe points lie in, whatever the others' (a sphere light in fog A, a
+    point light in fog B, a square light in vacuum, a sphere light across fog A's boundary: no
+    single medium, searched per point; a point light that declares fog B far from it keeps its
+    own). Planted, the probe points of one light taken for another's: fails."""
+    import drjit as dr
+    from bdpt_jit.media_path import EmitterMedia
+    from bdpt_jit.rays import RayOffsets
+    T = mi.ScalarTransform4f
+    emit = {'type': 'area', 'radiance': 1.0}
+    d = {'type': 'scene', 'fog_a': ms.homogeneous(0.5, 0.8), 'fog_b': ms.homogeneous(1.0, 0.5),
+         'sphere_a': ms.null_sphere(1.0, (0, 0, 0), 'fog_a'), 'box_b': ms.null_cube(0.5, (3, 0, 0), 'fog_b'),
+         'in_a': {'type': 'sphere', 'center': [0.2, 0.1, 0], 'radius': 0.1, 'emitter': emit},
+         'across_a': {'type': 'sphere', 'center': [0, 1, 0], 'radius': 0.2, 'emitter': emit},
+         'in_b': {'type': 'point', 'position': [3.1, 0, 0.1], 'intensity': 1.0},
+         'vacuum': {'type': 'rectangle', 'to_world': T().translate([0, 3, 0]).scale(0.2), 'emitter': emit},
+         'own_b': {'type': 'point', 'position': [-5, 0, 0], 'intensity': 1.0, 'medium': ms.ref('fog_b')}}
+    sc = mi.load_dict(d)
+    media = EmitterMedia(sc, RayOffsets(sc))
+    key = lambda ptr, p: int(dr.reinterpret_array(mi.UInt32, ptr(p))[0])
+    bounds = {s.id(): s for s in sc.shapes()}
+    fog = {'fog_a': key(mi.MediumPtr, bounds['sphere_a'].interior_medium()),
+           'fog_b': key(mi.MediumPtr, bounds['box_b'].interior_medium())}
+    table, per_point = np.array(media.table), np.array(media.per_point)
+    expected = {'in_a': (fog['fog_a'], 0), 'across_a': (0, 1), 'in_b': (fog['fog_b'], 0), 'vacuum': (0, 0),
+                'own_b': (fog['fog_b'], 0)}
+    for em in sc.emitters():
+        name = em.id() if em.get_shape() is None else em.get_shape().id()
+        k = key(mi.EmitterPtr, em)
+        assert (int(table[k]), int(per_point[k])) == expected[name], name
+
+
 @pytest.mark.parametrize('technique', ['bdpt', 'pt'])
 def test_a_sky_beyond_a_grid_that_no_shape_bounds(technique):
     """A heterogeneous medium that only the sensor carries ends at its grid: the sky beyond it
