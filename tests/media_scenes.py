@@ -355,7 +355,28 @@ def closed_room(medium='fog'):
     return out
 
 
-def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16, sensor_medium=True):
+def _strands_file():
+    """A text file of 12 B-spline strands (4 control points each, radius 0.03), written once to
+    the temporary directory under a fixed name (the references' keys hold the scene's
+    description, which names the file)."""
+    import os
+    import tempfile
+    path = os.path.join(tempfile.gettempdir(), 'bdpt_media_scenes_strands.txt')
+    lines = []
+    for k in range(12):
+        x = -0.6 + 0.1 * k
+        lines += [f'{x:.2f} -0.9 -0.4 0.03', f'{x + 0.02:.2f} -0.3 -0.35 0.03', f'{x - 0.02:.2f} 0.2 -0.45 0.03',
+                  f'{x:.2f} 0.5 -0.4 0.03', '']
+    text = '\n'.join(lines)
+    if not os.path.exists(path) or open(path).read() != text:
+        tmp = f'{path}.{os.getpid()}.tmp'
+        with open(tmp, 'w') as f:
+            f.write(text)
+        os.replace(tmp, path)
+    return path
+
+
+def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16, sensor_medium=True, extra=None):
     """(d) Fog filling a closed room: the box [-1, 1]^3 of diffuse walls (closed_room), filled
     with a homogeneous fog (``sigma_t``, ``albedo``, HG ``g``), the camera inside it at
     (0, 0, 0.9) looking at -z (the sensor in the fog); ``light``: 'area' (a 0.3 x 0.3 square
@@ -372,8 +393,19 @@ def fog_room(sigma_t=0.5, albedo=0.8, g=0.0, light='area', res=16, sensor_medium
 
     ``sensor_medium`` False: the sensor does not declare the fog it is in (a scene declared
     inconsistently). volpath's camera rays then see no fog before their first wall, where they
-    enter it; light subpaths' splats must follow them (light_path.camera_edge)."""
+    enter it; light subpaths' splats must follow them (light_path.camera_edge).
+
+    ``extra``: 'instance' adds a diffuse sphere (radius 0.25) as an instance of a shape group,
+    'curves' a dozen diffuse B-spline strands (radius 0.03) standing on the floor, each declaring
+    no medium (they lie in the fog): shapes whose hits are inexact (rays.RayOffsets.coarse,
+    one_sided), where a splat's edge is walked from the light vertex (LightTracer.camera_edge)."""
     objs = dict(closed_room('fog'))
+    if extra == 'instance':
+        objs['group'] = {'type': 'shapegroup', 'ball': {'type': 'sphere', 'radius': 0.25,
+                                                        'bsdf': diffuse([0.8, 0.5, 0.3])}}
+        objs['inst'] = {'type': 'instance', 'shapegroup': ref('group'), 'to_world': T().translate([0.2, -0.5, -0.3])}
+    elif extra == 'curves':
+        objs['hair'] = {'type': 'bsplinecurve', 'filename': _strands_file(), 'bsdf': diffuse([0.8, 0.5, 0.3])}
     if light == 'area':
         objs['light'] = in_medium({'type': 'rectangle', 'to_world': T().translate([0, 0.98, 0]).rotate([1, 0, 0], 90)
                                    .scale(0.15), 'bsdf': diffuse(0.0),

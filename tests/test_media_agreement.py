@@ -194,6 +194,8 @@ AGREE = [
     ('fog_box', {}, 6, 'bdpt', 'power', 64, 256),     # Bitterli's declarations: walls none, a null front face
     ('fog_box', {}, 6, 'lt', 'power', 64, 256),
     pytest.param('fog_box', {}, 6, 'vcm', 'power', 64, 256, marks=_SLOW),
+    ('fog_room', {'extra': 'instance'}, 5, 'bdpt', 'power', 64, 256),   # inexact hits beside media:
+    ('fog_room', {'extra': 'curves'}, 5, 'bdpt', 'power', 64, 256),     # splats walked from the light vertex
     pytest.param('grid_box', {'scale': 150.0}, 5, 'pt', 'power', 256, 256, marks=_SLOW),
 ]
 
