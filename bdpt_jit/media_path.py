@@ -262,6 +262,7 @@ class EmitterMedia:
 
     @staticmethod
     def sphere_placements(scene):
+        """emitter_tables.sphere_placements of the scene's emitters (where no EmitterTable gave them)."""
         emitters = scene.emitters()
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0]) for e in emitters]
         return sphere_placements(sphere_shapes(emitters, ids), max(ids + [0]) + 1)
