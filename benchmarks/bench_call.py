@@ -60,10 +60,22 @@ def per_call(scene, integ, repeats):
     return statistics.median(times)
 
 
+def light_counts(text):
+    """--lights: non-negative integers, comma-separated."""
+    try:
+        counts = [int(x) for x in text.split(',')]
+    except ValueError:
+        counts = [-1]
+    if any(n < 0 for n in counts):
+        raise argparse.ArgumentTypeError(f'--lights takes non-negative integers, comma-separated (got {text!r})')
+    return counts
+
+
 def main():
     global T
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--lights', default='0,10,40,160', help='numbers of sphere lights, comma-separated')
+    ap.add_argument('--lights', type=light_counts, default='0,10,40,160',
+                    help='numbers of sphere lights, comma-separated')
     ap.add_argument('--res', type=int, default=16)
     ap.add_argument('--repeats', type=int, default=7)
     ap.add_argument('--variant', default='llvm_ad_rgb')
@@ -73,7 +85,7 @@ def main():
     import bdpt_jit  # noqa: F401  (registers the plugin)
     print(f'{args.variant}, {args.res}x{args.res}, 1 spp a call, medians of {args.repeats} warm calls (ms)')
     print('| lights | fog | bdpt | Mitsuba | bdpt / Mitsuba |\n|---|---|---|---|---|')
-    for n in [int(x) for x in args.lights.split(',')]:
+    for n in args.lights:
         for fog in (False, True):
             scene = mi.load_dict(room(n, fog, args.res))
             mine = per_call(scene, mi.load_dict({'type': 'bdpt', 'max_depth': 5}), args.repeats)
