@@ -58,6 +58,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .stats import drain_kernel_history
+
 TRIAL_SPP = 4                   # the samples per pixel whose time a trial measures (time_trial)
 PILOT_SPP = 4                   # the pilot's samples per pixel (even: two halves, moments.py)
 LATTICE_PILOT_SPP = 2           # and in a crop larger than the moment film keeps (``pilot_spp``)
@@ -197,12 +199,12 @@ def kernel_seconds(render, weight=None):
     with ``weight``, each kernel's seconds times weight(its width)."""
     was = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history_clear()
+    drain_kernel_history()          # (what ran before: its observers', not timed)
     try:
         render()
         dr.sync_thread()
     finally:
-        history = dr.kernel_history()
+        history = drain_kernel_history()
         dr.set_flag(dr.JitFlag.KernelHistory, was)
     if weight is None:
         return sum(k.get('execution_time', 0.0) for k in history) / 1e3

@@ -64,3 +64,21 @@ class MediumStats(RayStats):
 
     def summary(self):
         return dict(self.totals)
+
+
+# Dr.Jit's kernel history is one queue, emptied by whoever reads it: technique auto's timed trials
+# read their kernels' times from it (auto.kernel_seconds), and the command counts a render's
+# kernels and their compilation from it (cli/rendering.KernelCounter). A reader drains it with
+# ``drain_kernel_history``, which hands what it read to every observer registered here, so that
+# each sees every kernel (the command's summary had counted none of a decision's trials, whose
+# kernels' compilation is most of a first decision on a new scene).
+KERNEL_OBSERVERS = []
+
+
+def drain_kernel_history():
+    """Dr.Jit's kernel history since the last drain (a list of dicts), also handed to each
+    callable of KERNEL_OBSERVERS."""
+    history = dr.kernel_history()
+    for observe in list(KERNEL_OBSERVERS):
+        observe(history)
+    return history

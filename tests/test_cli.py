@@ -161,6 +161,27 @@ def test_time_budget_with_technique_auto(tmp_path):
     assert np.isfinite(img).all()
 
 
+def test_the_kernel_count_holds_technique_auto_s_trials():
+    """cli/rendering.KernelCounter (the summary's kernels and compile time) counts every JIT
+    kernel launched between its start and stop, those that technique auto's timed trials read
+    from Dr.Jit's kernel history included: auto.kernel_seconds drains the history
+    (stats.drain_kernel_history), which hands what it reads to the counter. Before, a first
+    decision on a new scene compiled for 20 s while the summary said 0.03 s. Planted, the
+    trials' reads kept to themselves: the kernel before the trial and the trial's are missed."""
+    import drjit as dr
+    from bdpt_jit import auto
+    from bdpt_jit.cli.rendering import KernelCounter
+    counter = KernelCounter()
+    counter.start()
+    try:
+        dr.eval(dr.arange(mi.Float, 1000) * 2.0)        # pending in the history when the trial starts
+        seconds = auto.kernel_seconds(lambda: dr.eval(dr.arange(mi.Float, 100) + 1.0))
+        dr.eval(dr.arange(mi.Float, 10) - 1.0)
+    finally:
+        counter.stop()
+    assert seconds >= 0.0 and counter.launched == 3, counter.launched
+
+
 def test_time_passes_average_to_the_image(tmp_path):
     """--time accumulates an spp-weighted average; its first pass is --spp with the same seed."""
     out = tmp_path / 'one.exr'

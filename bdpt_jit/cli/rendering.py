@@ -28,14 +28,16 @@ class KernelCounter:
 
     def start(self):
         import drjit as dr
+        from ..stats import KERNEL_OBSERVERS
         self._flag = dr.flag(dr.JitFlag.KernelHistory)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()                         # drop what scene loading launched
+        KERNEL_OBSERVERS.append(self.count)         # (and what others drain: technique auto's trials)
 
-    def drain(self):
-        """Count the kernels launched since the last call (drains Dr.Jit's history)."""
+    def count(self, history):
+        """Count the JIT kernels of ``history`` (Dr.Jit's kernel history entries)."""
         import drjit as dr
-        for k in dr.kernel_history():
+        for k in history:
             if k.get('type') != dr.KernelType.JIT:
                 continue
             self.launched += 1
@@ -43,9 +45,17 @@ class KernelCounter:
             if not k.get('cache_hit', 0):
                 self.compiled += 1
 
+    def drain(self):
+        """Count the kernels launched since the last call (drains Dr.Jit's history)."""
+        from ..stats import drain_kernel_history
+        drain_kernel_history()                      # (this counter is one of its observers)
+
     def stop(self):
         import drjit as dr
+        from ..stats import KERNEL_OBSERVERS
         self.drain()
+        if self.count in KERNEL_OBSERVERS:
+            KERNEL_OBSERVERS.remove(self.count)
         dr.set_flag(dr.JitFlag.KernelHistory, self._flag)
 
 
