@@ -159,6 +159,7 @@ def test_time_budget_with_technique_auto(tmp_path):
         assert render_s >= budget - longest - 0.1, (render_s, decided, longest)
     assert header['bdpt.auto'].startswith('chose ') and float(header['bdpt.spp']) >= 1
     assert np.isfinite(img).all()
+    assert 'technique auto: pilots and trials' in r.stderr       # the bar says what the wait before a pass is
 
 
 def test_the_kernel_count_holds_technique_auto_s_trials():

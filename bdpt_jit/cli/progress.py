@@ -40,6 +40,13 @@ class Progress:
                                  f"{rate:.3g} M samples/s", refresh=False)
         self.bar.refresh()
 
+    def note(self, text):
+        """Show ``text`` in place of the passes' figures until the next pass (None: clear it)."""
+        if self.bar is None:
+            return
+        self.bar.set_postfix_str(text or '', refresh=False)
+        self.bar.refresh()
+
     def close(self, passes=None, spp_done=None, render_s=None):
         """Show the final state (when given), then end the bar's line."""
         if self.bar is None:

@@ -196,7 +196,13 @@ def _render_bdpt(args, scene, integ, guard, res, progress, clock):
             stopped_for.append('budget')
         return bool(stopped_for)
 
-    integ.hooks = RenderHooks(on_pass=on_pass, should_stop=should_stop, on_decided=clock.skip)
+    def on_decided():
+        clock.skip()
+        progress.note(None)
+
+    integ.hooks = RenderHooks(on_pass=on_pass, should_stop=should_stop, on_decided=on_decided)
+    if getattr(integ, 'technique', None) == 'auto':   # its first decision runs before any pass
+        progress.note('technique auto: pilots and trials')
     try:
         img = _mi_render(scene, integ, TIMED_SPP if timed else res.spp_requested, args.seed)
     finally:
