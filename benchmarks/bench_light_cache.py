@@ -10,9 +10,11 @@ any name takes parameters after ``@``: ``vcm@radius=0.01``);
 ``classic`` is bdpt's default estimator, ``pt`` its path tracing, ``vcm`` and ``vcm_all`` vertex
 merging (behind delta vertices; everywhere), ``vcm:R:C`` and ``vcm_all:R:C`` their light vertex
 caches, ``auto`` technique auto (its
-choice, the pilot and the trials, inside the budget; the choice in the last column). Each contestant renders one
-warm-up batch (compilation; auto a render of WARM_AUTO_S seconds), then batches of ``--batch-spp`` until ``--budget`` seconds have
-passed (``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
+choice, the pilot and the trials, inside the budget; the choice in the last column). Mitsuba's path renders one
+warm-up batch (compilation), then batches of ``--batch-spp`` until ``--budget`` seconds have
+passed; a bdpt contestant, as ``bdpt-jit render --time`` renders, one render of a fresh integrator
+in passes of ``--batch-spp`` until the budget has passed (its warm-up such a render of WARM_S
+seconds). Each ``--repeats`` times with seeds of their own, the median reported: rare fireflies, such
 as veach-bidir's small bright emitter seen through glass, which only s=0 samples, decide a
 single run); relMSE = mean((I - R)^2 / (R^2 + 1e-2)) over pixels and channels. The reference's own
 error is part of every figure: give it many more samples (``--ref-spp``) than any contestant
@@ -133,18 +135,24 @@ def equal_time(scene, integ, budget, batch_spp, seed0=0):
     return acc / spp, spp, time.perf_counter() - t0
 
 
-WARM_AUTO_S = 1.0          # auto's warm-up render: seconds (prepare)
+WARM_S = 1.0               # a bdpt contestant's warm-up render: seconds (prepare)
 
 
-def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
-    """equal_time for technique auto, rendered as ``bdpt-jit render --time`` renders it: one
+def equal_time_render(scene, props, budget, batch_spp, seed0=0):
+    """equal_time for a bdpt contestant, rendered as ``bdpt-jit render --time`` renders it: one
     render of 2^30 samples per pixel in passes of ``batch_spp``, stopped by its should_stop hook
     once ``budget`` seconds have passed (as equal_time's batches: the pass under way finishes),
-    its choices (the pilots and the trials) and any later ones inside; a fresh integrator
-    (``props``) each run, as its merging radius shrinks over its renders. Also returns what it
-    chose (its segments' choices joined by ' + '). Until the twenty-first session the first batch
-    chose and the chosen configuration rendered the other batches: that choice governed the
-    whole budget while it took the merges' radius of its own batch (auto.horizon)."""
+    a fresh integrator (``props``) each run. Returns (image, spp, seconds, the integrator, what
+    auto chose: its segments' choices joined by ' + ', or None).
+
+    Fresh, since an integrator carries its merges' iteration count from render to render (their
+    radius shrinks with it): until the forty-second session the fixed contestants rendered
+    separate batches with one integrator for the warm-up and every run, so that vcm's runs were
+    not alike (the third started near iteration 600 on the caustic, its radius 0.45 of the
+    first's where a fresh render's starts at 1) and none was the render a user's ``--time``
+    gets. auto always rendered so: until the twenty-first session its first batch chose and the
+    chosen configuration rendered the other batches, a choice governing the whole budget while
+    it took the merges' radius of its own batch (auto.horizon)."""
     from bdpt_jit.passes import RenderHooks
     integ = mi.load_dict(props)
     t0 = time.perf_counter()
@@ -157,35 +165,37 @@ def equal_time_auto(scene, props, budget, batch_spp, seed0=0):
     info = integ.last_render_info
     size = scene.sensors()[0].film().crop_size()
     spp = info['samples'] / (int(size[0]) * int(size[1]))
-    chosen = ' + '.join(d['chosen'] for d in info['auto']['decisions'])
-    return np.array(img, np.float64)[:, :, :3], spp, secs, chosen
+    chosen = ' + '.join(d['chosen'] for d in info['auto']['decisions']) if 'auto' in info else None
+    return np.array(img, np.float64)[:, :, :3], spp, secs, integ, chosen
 
 
 def prepare(args, name):
     """A contestant: its scene and integrator, warmed up as its runs render (the first render of
-    a kernel compiles it, and a kernel is compiled for each samples per pixel of a call): one
-    batch of --batch-spp; for auto, a budgeted render of WARM_AUTO_S seconds (its decision's
-    trials and pilots, and its passes; with a 1-spp warm-up, its first run's decision took 4.7 s
-    against 2.8-2.9 s in the later ones on veach-bidir at 256 x 256)."""
+    a kernel compiles it): Mitsuba's path one batch of --batch-spp; a bdpt contestant a budgeted
+    render of WARM_S seconds in passes of --batch-spp (auto: its decision's trials and pilots,
+    and its passes; with a 1-spp warm-up, its first run's decision took 4.7 s against 2.8-2.9 s
+    in the later ones on veach-bidir at 256 x 256)."""
     props = contestant(name, args.max_depth)
-    if name == 'auto':          # passes of --batch-spp (equal_time_auto)
+    bdpt = props['type'] == 'bdpt'
+    if bdpt:                    # passes of --batch-spp (equal_time_render)
         props['samples_per_pass'] = args.batch_spp * args.res * args.res
     scene, integ = load(args.scene, args.res, args.max_depth, props, args.define)
     t0 = time.perf_counter()
-    if name == 'auto':
-        equal_time_auto(scene, props, WARM_AUTO_S, args.batch_spp, seed0=999)
+    if bdpt:
+        integ = equal_time_render(scene, props, WARM_S, args.batch_spp, seed0=999)[3]
     else:
         dr.eval(mi.render(scene, integrator=integ, spp=args.batch_spp, seed=999))
-    return dict(name=name, scene=scene, integ=integ, props=props, warm=time.perf_counter() - t0,
+    return dict(name=name, scene=scene, integ=integ, props=props, bdpt=bdpt, warm=time.perf_counter() - t0,
                 rels=[], spps=[], sps=[], chosen=[])
 
 
 def run_once(args, c, r, ref):
     """Equal-time run ``r`` of contestant ``c`` (seeds of its own: --seed + 1000 r + batch)."""
     seed0 = args.seed + 1000 * r
-    if c['name'] == 'auto':
-        img, spp, secs, chosen = equal_time_auto(c['scene'], c['props'], args.budget, args.batch_spp, seed0=seed0)
-        c['chosen'].append(chosen)
+    if c['bdpt']:
+        img, spp, secs, c['integ'], chosen = equal_time_render(c['scene'], c['props'], args.budget, args.batch_spp, seed0=seed0)
+        if chosen is not None:
+            c['chosen'].append(chosen)
     else:
         img, spp, secs = equal_time(c['scene'], c['integ'], args.budget, args.batch_spp, seed0=seed0)
     c['rels'].append(relmse(img, ref))

@@ -118,10 +118,19 @@ def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
 
 
 def measure(path, name, ref, args, mask=None):
-    """(median (seconds, spp, relMSE) per checkpoint over --repeats runs, the first run's image)."""
-    scene, integ = load(path, args.res, args.max_depth, integrator(name, args.max_depth))
-    mi.render(scene, integrator=integ, spp=1, seed=999)          # warm-up: compiles the kernels
-    runs = [curve(scene, integ, ref, args.budget, args.batch_spp, 1000 * (r + 1), mask) for r in range(args.repeats)]
+    """(median (seconds, spp, relMSE) per checkpoint over --repeats runs, the first run's image).
+    Each run renders with a fresh integrator, as a user's render starts: a bdpt integrator carries
+    its merges' iteration count from render to render (their radius shrinks with it), so that
+    until the forty-second session, one integrator rendering the warm-up and every run, vcm's
+    runs were not alike (its third run started near iteration 750 on the caustic at 128 x 128,
+    its radius 0.44 of a fresh render's first). The warm-up renders one batch of --batch-spp
+    (a kernel is compiled for each samples per pixel of a call: until then the warm-up rendered
+    1 spp, and the first run's first batch compiled)."""
+    props = integrator(name, args.max_depth)
+    scene, integ = load(path, args.res, args.max_depth, props)
+    mi.render(scene, integrator=integ, spp=args.batch_spp, seed=999)      # warm-up: compiles the kernels
+    runs = [curve(scene, mi.load_dict(props), ref, args.budget, args.batch_spp, 1000 * (r + 1), mask)
+            for r in range(args.repeats)]
     medians = [tuple(float(np.median([run[i][j] for run, _ in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
     return medians, runs[0][1]
 
