@@ -28,7 +28,10 @@ SIGGRAPH 2022) and each candidate's measured time.
    candidate by the model is timed too before it is chosen (until the best is a timed one), and
    while the runner-up's efficiency is within CLOSE of the best's, both are timed again, up to
    TIMINGS times, until a candidate's two least timings agree within SETTLED (``settled``); a
-   candidate's time is the least of its timings. Another job's load on the cores
+   candidate's time is the least of its timings. Where the caller's hooks say the decision's
+   share of a time budget is spent (``out_of_time``: passes.RenderHooks.decision_over; the
+   command's --time gives it half), no further candidate is timed, and the choice is among the
+   timed ones. Another job's load on the cores
    only adds time, and comes in bursts: under a second test worker, single timings of pt's on a
    96 x 96 image ranged over 0.6-2.3 ms a sample per pixel, and a cache was chosen over it.
 3. The choice: v = the mean over pixels of V / (I^2 + 0.01) (the relative MSE of one sample per
@@ -289,6 +292,14 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
         if first * traced / pixels >= ONE_TIMING_S:     # (the kernels' own time, not the crop's)
             return
     add_timing(trial, measure() / spp)
+
+
+def out_of_time(make):
+    """Whether the caller's share of a time budget for this decision is spent
+    (``make.decision_over``, the render's passes.RenderHooks.decision_ends; absent: never):
+    then no further candidate is timed, and the choice is among those timed so far."""
+    over = getattr(make, 'decision_over', None)
+    return over is not None and bool(over())
 
 
 def lattice_weight(pixels, traced):
@@ -580,7 +591,7 @@ def time_points(make, trials, scene, sensor, seed, spp):
     competitive again, and is accepted). On veach-bidir vcm's trial (0.6 s a sample per pixel at 256 x 256, 3.6 times the
     time of vcm behind delta, with v 0.47 against its 0.32) could not win and was timed in every
     decision: now the classic estimator's time (vcm's least) leaves it out."""
-    while True:
+    while not out_of_time(make):
         best = max((score(tr, trials[0]) for tr in trials if tr.timed), default=0.0)
         todo = [(bound, group) for bound, group in point_groups(trials)
                 if bound > best and any(not tr.timed for tr in group)]
@@ -688,7 +699,7 @@ def clear_pt(make, trials, scene, sensor, seed, spp):
     for tr in (pt, cheap):
         if not tr.timed:
             time_trial(make, tr, scene, sensor, seed, spp)
-    while not settled(cheap):
+    while not settled(cheap) and not out_of_time(make):
         time_trial(make, cheap, scene, sensor, seed, spp)
     if pt.renders + cheap.renders > renders:       # new images for the denominator (pilot: the pilots')
         normalise(trials)
@@ -803,12 +814,15 @@ def per_pixel_trials(trials):
 
 def decide(make, trials, scene, sensor, seed, spp):
     """The most efficient trial (ranked), timing the best by the cost model before it is chosen
-    and both of a close call again (up to TIMINGS each)."""
+    and both of a close call again (up to TIMINGS each); once ``out_of_time``, the most
+    efficient of the trials timed so far."""
     while True:
         cost_model(trials)              # again after each timing: its points' times may have fallen
         for tr in trials:               # a per-pixel candidate's t: the mean of its pixels' caches'
             if tr.parts is not None and not tr.timed:
                 tr.seconds = float(np.mean(np.array([p.seconds for p in tr.parts])[tr.pick]))
+        if out_of_time(make):
+            return ranked([tr for tr in trials if tr.timed])[0]
         best, runner = ranked(trials)
         if not best.timed:          # the best by the model is timed before it is chosen
             time_trial(make, best, scene, sensor, seed, spp)

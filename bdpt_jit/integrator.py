@@ -175,12 +175,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             # integrator is given the render's own count: auto_segment)
             integ.merge_iteration = auto.pilot_iteration(self.merge_iteration, governs[0], self.settings['radius_alpha'])
             return integ
+        make.decision_over = self.hooks.decision_ends      # (auto.out_of_time: the caller's share of a budget)
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)
         crop = sensor.film().crop_size()
         n_pixels = int(crop[0]) * int(crop[1])
         vpp, vpp_merging = self.auto_vertices(make, ctx, seed, n_pixels)
         best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp, vpp_merging)
+        cut = [auto.out_of_time(make)]          # (the decisions that ended at the caller's decision_over)
         self.hooks.decided()
         decided_s, render_s, segments = _time.perf_counter() - t0, 0.0, []
         job = AutoRender(scene, sensor, seed, spp, n_pixels, evaluate)
@@ -203,12 +205,14 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             rendered = int(round(sum(seg['spp'] for seg in segments)))
             governs[0] = auto.horizon(spp - rendered, rendered)
             best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
+            cut.append(auto.out_of_time(make))
             self.hooks.decided()
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]
         image = self.combine_segments(segments, spp, n_pixels)
         self.last_render_info['auto'] = {'chosen': best.name, 'pilot_spp': auto.pilot_spp(sensor), 'trial_spp': auto.trial_spp(sensor),
                                          'trial_s': decided_s, 'vertices_per_light_path': vpp, 'vertices_per_merging_light_path': vpp_merging,
+                                         'decisions_cut': sum(cut),
                                          # (relmse_1spp: the v the segment's weight used; a per-pixel candidate
                                          # is built again at each decision, so 'candidates' may list a later one)
                                          'decisions': [{'chosen': seg['trial'].name, 'seconds': t, 'spp': seg['spp'],

@@ -191,14 +191,23 @@ class RenderHooks:
       finished passes are developed as a render of that many samples (the light image
       rescaled), with ``last_render_info['interrupted']`` set;
     - ``on_decided()`` after each of technique auto's decisions (its pilots and trials), which
-      are not passes: a caller that times passes starts the next one's clock there.
+      are not passes: a caller that times passes starts the next one's clock there;
+    - ``decision_over()`` between the trial renders of technique auto's decisions: True ends
+      the timing there, and the decision chooses among the candidates timed so far (pt and the
+      cheapest bidirectional one are timed first, auto.clear_pt): a ``--time`` render's first
+      decision, whose kernels compile on a new scene, keeps to a share of the budget.
 
-    A Ctrl-C (KeyboardInterrupt) during a pass after the first has the same effect."""
+    A Ctrl-C (KeyboardInterrupt) during a pass after the first has the same effect as
+    ``should_stop``."""
 
-    def __init__(self, on_pass=None, should_stop=None, on_decided=None):
+    def __init__(self, on_pass=None, should_stop=None, on_decided=None, decision_over=None):
         self.on_pass = on_pass
         self.should_stop = should_stop
         self.on_decided = on_decided
+        self.decision_over = decision_over
+
+    def decision_ends(self):
+        return self.decision_over is not None and bool(self.decision_over())
 
     def decided(self):
         if self.on_decided is not None:

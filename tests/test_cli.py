@@ -162,6 +162,23 @@ def test_time_budget_with_technique_auto(tmp_path):
     assert 'technique auto: pilots and trials' in r.stderr       # the bar says what the wait before a pass is
 
 
+def test_technique_auto_s_decision_keeps_to_half_the_time_budget(tmp_path):
+    """--time with technique auto: a decision still timing candidates at half the budget
+    (cli/rendering.DECISION_SHARE; a first decision on a new scene compiles each candidate's
+    kernels, 10-20 s) times no more and chooses among those timed, pt and the probe
+    (auto.out_of_time); the summary says so. Planted, the command's hook not given: every
+    candidate that could win is timed (the render then runs past a short budget)."""
+    out = tmp_path / 'cut.exr'
+    r = run_cli(CORNELL, '-D', 'res=16', '--time', '0.01', '--pass-spp', '1', '--technique', 'auto',
+                '-o', str(out), *VARIANT)
+    assert r.returncode == 0, r.stderr
+    _, _, header = read_exr(out)
+    summary = header['bdpt.auto']
+    assert '1 cut at half the time budget' in summary, summary
+    timed = re.findall(r'([a-z0-9. ]+?) [0-9.e+-]+ x [0-9.e+-]+(?:,|$| \()', summary.split('s/spp: ', 1)[1])
+    assert sorted(t.strip() for t in timed) == ['cache 0.25x1', 'pt'], summary
+
+
 def test_the_kernel_count_holds_technique_auto_s_trials():
     """cli/rendering.KernelCounter (the summary's kernels and compile time) counts every JIT
     kernel launched between its start and stop, those that technique auto's timed trials read

@@ -411,6 +411,25 @@ def test_auto_in_media_pilots_vcm_s_own_merge_set_apart(monkeypatch):
     assert pilots == [(False, [n for n in names if n != auto.BEHIND_DELTA]), (True, [auto.BEHIND_DELTA])], pilots
 
 
+def test_a_decision_past_its_share_of_the_budget_chooses_among_the_timed():
+    """passes.RenderHooks.decision_over (bdpt-jit render --time gives technique auto's decisions
+    half its budget): once it is True no further candidate is timed (auto.out_of_time) and the
+    choice is the most efficient of those timed, pt and the probe (auto.clear_pt), on the caustic,
+    whose decision otherwise times vcm's and the caches (test_auto_renders_the_chosen_configuration).
+    Planted, the hook not read: more candidates are timed."""
+    from bdpt_jit import auto
+    from bdpt_jit.passes import RenderHooks
+    scene = load_scene('caustic.xml', 16, 4)
+    integ = mi.load_dict({'type': 'bdpt', 'max_depth': 4, 'technique': 'auto'})
+    integ.hooks = RenderHooks(decision_over=lambda: True)
+    img = np.array(mi.render(scene, integrator=integ, spp=4, seed=5))
+    info = integ.last_render_info['auto']
+    timed = [c for c in info['candidates'] if c['timed']]
+    assert {c['name'] for c in timed} == {'pt', 'cache 0.25x1'}, [c['name'] for c in timed]
+    assert info['chosen'] == max(timed, key=lambda c: c['efficiency'])['name'] and info['decisions_cut'] == 1
+    assert np.all(np.isfinite(img)) and integ.last_render_info['samples'] == 4 * 16 * 16
+
+
 @pytest.mark.parametrize('scene_name,merging', [('cornell-box.xml', False), ('caustic.xml', True)])
 def test_auto_renders_the_chosen_configuration(monkeypatch, scene_name, merging):
     """technique 'auto' (auto.py): the pilot's predicted variances and the timed trials choose

@@ -109,7 +109,9 @@ def _bdpt_statistics(info):
         decided = a.get('decisions', [])
         steps = '' if len(decided) < 2 else ' (decided {} times: {})'.format(len(decided), ', '.join(
             f"{d['chosen']} {d['spp']:.4g} spp weight {d['weight']:.3g} after {d['seconds']:.2f} s" for d in decided))
-        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials{steps}; predicted relMSE at "
+        cut = ('' if not a.get('decisions_cut') else
+               f" ({a['decisions_cut']} cut at half the time budget: the choice among the candidates timed by then)")
+        stats['auto'] = (f"chose {a['chosen']} after {a['trial_s']:.2f} s of pilot and trials{cut}{steps}; predicted relMSE at "
                          "1 spp x s/spp: " + ', '.join(
                              f"{c['name']} {c['relmse_1spp']:.3g} x "
                              + ('not timed' if c['seconds_per_spp'] is None else f"{c['seconds_per_spp']:.3g}")
