@@ -164,18 +164,8 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         pilots that share no sample with it, and the image is the segments' images combined
         with auto.segment_weights."""
         from . import auto
-        base = {k: v for k, v in self.settings.items() if v is not None}
         governs = [auto.horizon(spp, 0)]        # the spp the next decision governs
-
-        def make(settings, pixel_counts=None):
-            integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
-            integ.pixel_counts = pixel_counts
-            # pilots and trials at the radius of the iterations the decision governs (merge.py:
-            # it shrinks with them; auto.pilot_iteration), not at the next one's (a segment's
-            # integrator is given the render's own count: auto_segment)
-            integ.merge_iteration = auto.pilot_iteration(self.merge_iteration, governs[0], self.settings['radius_alpha'])
-            return integ
-        make.decision_over = self.hooks.decision_ends      # (auto.out_of_time: the caller's share of a budget)
+        make = self.auto_factory(governs)
         t0 = _time.perf_counter()
         ctx = self.make_context(scene, sensor, spp)
         crop = sensor.film().crop_size()
@@ -221,6 +211,25 @@ class BDPTIntegrator(mi.SamplingIntegrator):
                                          'candidates': [tr.report() for tr in trials],
                                          'cost_model': auto.cost_fit(trials)}
         return image
+
+    def auto_factory(self, governs):
+        """technique auto's ``make(settings, pixel_counts=None)``: an integrator of the candidate
+        configuration ``settings``, this one's other settings kept, its merges' iteration count
+        that of the samples per pixel the decision governs (``governs[0]``, updated by the
+        caller); ``make.decision_over``: the render's hook (auto.out_of_time)."""
+        from . import auto
+        base = {k: v for k, v in self.settings.items() if v is not None}
+
+        def make(settings, pixel_counts=None):
+            integ = BDPTIntegrator({**base, 'technique': 'bdpt', **settings})
+            integ.pixel_counts = pixel_counts
+            # pilots and trials at the radius of the iterations the decision governs (merge.py:
+            # it shrinks with them; auto.pilot_iteration), not at the next one's (a segment's
+            # integrator is given the render's own count: auto_segment)
+            integ.merge_iteration = auto.pilot_iteration(self.merge_iteration, governs[0], self.settings['radius_alpha'])
+            return integ
+        make.decision_over = self.hooks.decision_ends
+        return make
 
     def auto_vertices(self, make, ctx, seed, n_pixels):
         """technique auto's stored vertices per light subpath (light_cache.pilot, at least 256
