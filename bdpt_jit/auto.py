@@ -297,9 +297,14 @@ def time_trial(make, trial, scene, sensor, seed, spp=TRIAL_SPP):
 def out_of_time(make):
     """Whether the caller's share of a time budget for this decision is spent
     (``make.decision_over``, the render's passes.RenderHooks.decision_ends; absent: never):
-    then no further candidate is timed, and the choice is among those timed so far."""
+    then no further candidate is timed, and the choice is among those timed so far. Asked only
+    where a timing would follow, so that True marks the decision cut short (``make.cut_short``,
+    which the caller clears before each decision)."""
     over = getattr(make, 'decision_over', None)
-    return over is not None and bool(over())
+    if over is None or not over():
+        return False
+    make.cut_short = True
+    return True
 
 
 def lattice_weight(pixels, traced):
@@ -591,11 +596,11 @@ def time_points(make, trials, scene, sensor, seed, spp):
     competitive again, and is accepted). On veach-bidir vcm's trial (0.6 s a sample per pixel at 256 x 256, 3.6 times the
     time of vcm behind delta, with v 0.47 against its 0.32) could not win and was timed in every
     decision: now the classic estimator's time (vcm's least) leaves it out."""
-    while not out_of_time(make):
+    while True:
         best = max((score(tr, trials[0]) for tr in trials if tr.timed), default=0.0)
         todo = [(bound, group) for bound, group in point_groups(trials)
                 if bound > best and any(not tr.timed for tr in group)]
-        if not todo:
+        if not todo or out_of_time(make):
             return
         group = max(todo, key=lambda x: x[0])[1]
         time_trial(make, next(tr for tr in group if not tr.timed), scene, sensor, seed, spp)
@@ -821,13 +826,14 @@ def decide(make, trials, scene, sensor, seed, spp):
         for tr in trials:               # a per-pixel candidate's t: the mean of its pixels' caches'
             if tr.parts is not None and not tr.timed:
                 tr.seconds = float(np.mean(np.array([p.seconds for p in tr.parts])[tr.pick]))
-        if out_of_time(make):
-            return ranked([tr for tr in trials if tr.timed])[0]
         best, runner = ranked(trials)
+        close = runner is not None and runner.efficiency * CLOSE > best.efficiency \
+            and not (settled(best) and settled(runner))
+        if (close or not best.timed) and out_of_time(make):
+            return ranked([tr for tr in trials if tr.timed])[0]
         if not best.timed:          # the best by the model is timed before it is chosen
             time_trial(make, best, scene, sensor, seed, spp)
-        elif runner is not None and runner.efficiency * CLOSE > best.efficiency \
-                and not (settled(best) and settled(runner)):
+        elif close:
             for tr in (best, runner):       # a close call: both timed again (the least of their times)
                 if not settled(tr):
                     time_trial(make, tr, scene, sensor, seed, spp)

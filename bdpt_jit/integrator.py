@@ -172,7 +172,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
         n_pixels = int(crop[0]) * int(crop[1])
         vpp, vpp_merging = self.auto_vertices(make, ctx, seed, n_pixels)
         best, trials = auto.choose(make, ctx, scene, sensor, seed, vpp, vpp_merging)
-        cut = [auto.out_of_time(make)]          # (the decisions that ended at the caller's decision_over)
+        cut = [make.cut_short]                  # (each decision: a timing left out at the caller's decision_over)
         self.hooks.decided()
         decided_s, render_s, segments = _time.perf_counter() - t0, 0.0, []
         job = AutoRender(scene, sensor, seed, spp, n_pixels, evaluate)
@@ -194,8 +194,9 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             t1 = _time.perf_counter()
             rendered = int(round(sum(seg['spp'] for seg in segments)))
             governs[0] = auto.horizon(spp - rendered, rendered)
+            make.cut_short = False
             best = auto.rechoose(make, trials, scene, sensor, seed, len(segments))
-            cut.append(auto.out_of_time(make))
+            cut.append(make.cut_short)
             self.hooks.decided()
             took.append(_time.perf_counter() - t1)
             decided_s += took[-1]
@@ -229,6 +230,7 @@ class BDPTIntegrator(mi.SamplingIntegrator):
             integ.merge_iteration = auto.pilot_iteration(self.merge_iteration, governs[0], self.settings['radius_alpha'])
             return integ
         make.decision_over = self.hooks.decision_ends
+        make.cut_short = False                  # (auto.out_of_time)
         return make
 
     def auto_vertices(self, make, ctx, seed, n_pixels):

@@ -42,7 +42,6 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = {'caustic': os.path.join(REPO, 'scenes', 'media', 'volumetric-caustic.xml'),
           'fog': os.path.join(REPO, 'scenes', 'media', 'fog.xml')}
 CHECKPOINTS = (0.125, 0.25, 0.5, 1.0)       # fractions of the budget
-MEANS = {}                                  # integrator -> its runs' mean relMSE per checkpoint (measure)
 
 
 def integrator(name, max_depth):
@@ -119,10 +118,10 @@ def curve(scene, integ, ref, budget, batch_spp, seed0, mask=None):
 
 
 def measure(path, name, ref, args, mask=None):
-    """(median (seconds, spp, relMSE) per checkpoint over --repeats runs, the first run's image);
-    the runs' mean relMSE per checkpoint goes into MEANS[name] (the relative MSE is an
-    expectation, which the mean estimates and the median does not where an error has a heavy
-    tail: docs/light-cache.md, forty-second section).
+    """([(median seconds, median spp, median relMSE, mean relMSE)] per checkpoint over --repeats
+    runs, the first run's image): the relative MSE is an expectation, which the runs' mean
+    estimates and their median does not where an error has a heavy tail (docs/light-cache.md,
+    forty-second section).
     Each run renders with a fresh integrator, as a user's render starts: a bdpt integrator carries
     its merges' iteration count from render to render (their radius shrinks with it), so that
     until the forty-second session, one integrator rendering the warm-up and every run, vcm's
@@ -135,14 +134,14 @@ def measure(path, name, ref, args, mask=None):
     mi.render(scene, integrator=integ, spp=args.batch_spp, seed=999)      # warm-up: compiles the kernels
     runs = [curve(scene, mi.load_dict(props), ref, args.budget, args.batch_spp, 1000 * (r + 1), mask)
             for r in range(args.repeats)]
-    medians = [tuple(float(np.median([run[i][j] for run, _ in runs])) for j in range(3)) for i in range(len(CHECKPOINTS))]
-    MEANS[name] = [float(np.mean([run[i][2] for run, _ in runs])) for i in range(len(CHECKPOINTS))]
-    return medians, runs[0][1]
+    rows = [tuple(float(np.median([run[i][j] for run, _ in runs])) for j in range(3))
+            + (float(np.mean([run[i][2] for run, _ in runs])),) for i in range(len(CHECKPOINTS))]
+    return rows, runs[0][1]
 
 
 def save_figures(key, ref, results, ref_err, fig_dir):
     """``KEY-images.png`` and ``KEY-error.png`` in ``fig_dir`` (see the module's docstring);
-    ``results``: {integrator: (medians, image)}."""
+    ``results``: {integrator: (rows, image)}, ``measure``'s."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -189,10 +188,9 @@ def table(key, rows, ref_err):
           "| mean of the runs, less the reference's | / volpath's |")
     print('|---|---|---|---|---|---|---|---|')
     for name, r in rows.items():
-        for i, (secs, spp, err) in enumerate(r):
+        for i, (secs, spp, err, mean) in enumerate(r):
             ratio = f'{own(err) / own(base[i][2]):.3g}' if base and own(base[i][2]) > 0 else '-'
-            mean, mean_base = MEANS[name][i], MEANS['volpath'][i] if base else None
-            ratio_mean = f'{own(mean) / own(mean_base):.3g}' if base and own(mean_base) > 0 else '-'
+            ratio_mean = f'{own(mean) / own(base[i][3]):.3g}' if base and own(base[i][3]) > 0 else '-'
             print(f'| {name} | {secs:.1f} | {spp:.0f} | {err:.4g} | {own(err):.4g} | {ratio} | {own(mean):.4g} | {ratio_mean} |')
 
 
